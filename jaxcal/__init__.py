@@ -1,0 +1,22 @@
+"""jaxcal: differentiable robot calibration in JAX.
+
+    import jaxcal as jc
+    rb = jc.robots.get("stanford")
+    data = jc.simulate(rb, jc.perturb(rb, 1e-3), jc.random_configurations(rb, 100), "position", noise=1e-5)
+    fit = jc.identify(rb, data)
+"""
+
+from jaxcal import (
+           _setup,  # noqa: F401  (float64 + compilation cache before anything traces)
+           measure,
+           robots,
+)
+from jaxcal.fit import DataError, Dataset, FitResult, identify, perturb, random_configurations, simulate
+from jaxcal.forward import forward
+from jaxcal.kin import Pose, Robot
+from jaxcal.measure import make_device
+from jaxcal.robots.io import load_robot, save_robot
+
+__version__ = "0.1.0"
+__all__ = ["DataError", "Dataset", "FitResult", "Pose", "Robot", "forward", "identify", "make_device",
+           "load_robot", "measure", "perturb", "random_configurations", "robots", "save_robot", "simulate"]

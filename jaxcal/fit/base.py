@@ -1,0 +1,68 @@
+"""Base (identifiable) parameters by QR of the observation matrix (seed 001 Appendix III).
+
+Columns are ordered by priority (highest first, stable in the table order), then a QR
+decomposition without pivoting keeps a column when |R_ii| > tau = c * eps * max|R_jj| (eq 34):
+the base set is the first independent columns in priority order. Regrouping relations follow
+from beta = R1^-1 R2 (eq 37); columns whose norm is below tau have no effect at all.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import scipy.linalg
+
+
+@dataclasses.dataclass(frozen=True)
+class BaseSet:
+    """Which columns of W form the base, which have no effect and which are regrouped."""
+
+    independent: np.ndarray  # column indices of the base set, in priority order
+    no_effect: np.ndarray  # columns with no effect on the model (zero column)
+    regrouped: np.ndarray  # columns dependent on the base set
+    beta: np.ndarray  # (len(independent), len(regrouped)): W_regrouped = W_base @ beta
+    tau: float
+    diag: np.ndarray  # |R_ii| in the ordered column sequence
+    order: np.ndarray  # the column order used
+
+
+def priority_order(priority) -> np.ndarray:
+    """Column order: higher priority first, ties kept in table order; priority 0 dropped."""
+    priority = np.asarray(priority, float)
+    idx = np.flatnonzero(priority > 0)
+    return idx[np.argsort(-priority[idx], kind="stable")]
+
+
+def base_set(W, priority, c: float | None = None) -> BaseSet:
+    """Base set of the columns of W under the given priorities (seed 001 eq 33-37)."""
+    W = np.asarray(W, float)
+    order = priority_order(priority)
+    Wo = W[:, order]
+    R = scipy.linalg.qr(Wo, mode="r")[0] if Wo.size else np.zeros((0, 0))
+    diag = np.abs(np.diag(R)) if R.size else np.zeros(0)
+    cols = Wo.shape[1]
+    scale = np.max(diag) if diag.size else 0.0
+    tau = (cols if c is None else c) * np.finfo(float).eps * scale
+    keep = diag > tau
+    col_norm = np.linalg.norm(Wo, axis=0)
+    zero = col_norm <= tau
+    independent = order[keep]
+    dependent_pos = np.flatnonzero(~keep & ~zero)
+    regrouped = order[dependent_pos]
+    if regrouped.size and independent.size:
+        W1 = W[:, independent]
+        beta = np.linalg.lstsq(W1, W[:, regrouped], rcond=None)[0]
+    else:
+        beta = np.zeros((independent.size, regrouped.size))
+    return BaseSet(independent, order[zero], regrouped, beta, float(tau), diag, order)
+
+
+def regrouping_relations(bs: BaseSet, names, tol: float = 1e-8) -> list[str]:
+    """Readable relations 'base_k absorbs + b * regrouped_j' from beta (eq 32, 37)."""
+    out = []
+    for i, bi in enumerate(bs.independent):
+        terms = [f"{bs.beta[i, j]:+.6g} {names[rj]}" for j, rj in enumerate(bs.regrouped) if abs(bs.beta[i, j]) > tol]
+        if terms:
+            out.append(f"{names[bi]}_b = {names[bi]} " + " ".join(terms))
+    return out

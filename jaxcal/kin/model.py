@@ -1,0 +1,171 @@
+"""Robot description (static structure + flat parameter table) and the one tree evaluator.
+
+A robot is a tree of bodies. Body i has a parent (-1 = the base frame), a convention, a kind, the
+indices of its parameter row inside the flat vector `a`, and the indices of the joint inputs it
+consumes. `frames(robot, a, q)` composes the local transforms from the base outwards and
+returns every body frame; `forward(robot, a, q)` returns the tool frame. Both jit and vmap;
+leading batch axes of `q` are mapped over.
+
+Parameters carry a unit kind ("length", "angle", "gain", "scale"), a free/fixed flag and a
+priority (seed 001 §2.2: higher priority columns are kept first in the base set; 0 = never
+identified).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.kin import conventions as cv
+from jaxcal.kin.pose import Pose
+
+UNIT_KINDS = ("length", "angle", "gain", "scale")
+
+
+@dataclasses.dataclass(frozen=True)
+class Body:
+    """Static description of one body/frame of the tree."""
+
+    name: str
+    convention: str  # "pry" | "mdh" | "mcpc"
+    kind: Any  # PRY joint kind (str), MDH sigma (int) or MCPC type (int)
+    parent: int  # index of the parent body, -1 for the base frame
+    rows: tuple[int, ...]  # indices of this body's parameter row in `a`; -1 = constant zero
+    inputs: tuple[int, ...] = ()  # indices into the joint-variable vector
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Robot:
+    """A calibratable robot. Hashes by identity so it can be a static jit argument."""
+
+    name: str
+    bodies: tuple[Body, ...]
+    names: tuple[str, ...]
+    nominal_np: np.ndarray
+    units: tuple[str, ...]
+    free_mask: np.ndarray
+    priority: np.ndarray
+    joint_names: tuple[str, ...]
+    home_np: np.ndarray
+    q_min: np.ndarray
+    q_max: np.ndarray
+    tip: int = -1  # body whose frame is the tool frame
+    base: Pose | None = None  # constant transform from the world to the root (PRY b0)
+    gains: tuple[int, ...] | None = None  # parameter index of each input's transmission gain
+    coupling_joint: np.ndarray | None = None  # Cj of seed 001 eq 4
+    coupling_motor: np.ndarray | None = None  # Cm of seed 001 eq 4
+    closure: Any = None  # loop-closure description (jaxcal.closure); None for open chains
+    extras: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def nominal(self) -> jnp.ndarray:
+        return jnp.asarray(self.nominal_np)
+
+    @property
+    def home(self) -> jnp.ndarray:
+        return jnp.asarray(self.home_np)
+
+    @property
+    def n_inputs(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def n_params(self) -> int:
+        return len(self.names)
+
+    def index(self, name: str) -> int:
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise KeyError(f"robot {self.name!r} has no parameter {name!r}") from None
+
+    def replace(self, **changes) -> "Robot":
+        return dataclasses.replace(self, **changes)
+
+    def with_free(self, names_or_mask) -> "Robot":
+        """A copy whose free mask is the given names (or boolean mask)."""
+        mask = np.asarray(names_or_mask)
+        if mask.dtype != bool:
+            mask = np.isin(np.array(self.names), list(names_or_mask))
+        return self.replace(free_mask=mask)
+
+    def table(self) -> str:
+        """Human-readable parameter table."""
+        lines = [f"{'name':<16}{'nominal':>14}  {'unit':<7}{'free':<6}{'prio':>5}"]
+        for n, v, u, f, pr in zip(self.names, self.nominal_np, self.units, self.free_mask, self.priority):
+            lines.append(f"{n:<16}{v:>14.6g}  {u:<7}{'yes' if f else 'no':<6}{pr:>5g}")
+        return "\n".join(lines)
+
+
+def joint_variables(robot: Robot, a, q):
+    """Joint variables from motor readings: q_j = Cj diag(K) Cm q_m (seed 001 eq 4).
+
+    Offsets live in the convention rows (theta/r for MDH, a3/d3 for MCPC, yaw for PRY).
+    """
+    qm = q
+    if robot.coupling_motor is not None:
+        qm = jnp.asarray(robot.coupling_motor) @ qm
+    if robot.gains is not None:
+        k = jnp.stack([a[i] if i >= 0 else jnp.ones((), a.dtype) for i in robot.gains])
+        qm = k * qm
+    if robot.coupling_joint is not None:
+        qm = jnp.asarray(robot.coupling_joint) @ qm
+    return qm
+
+
+def local_transform(body: Body, row, qv) -> Pose:
+    if body.convention == "pry":
+        return cv.pry_module(row, body.kind, qv)
+    if body.convention == "mdh":
+        return cv.mdh_frame(row, body.kind, qv)
+    if body.convention == "mcpc":
+        return cv.mcpc_frame(row, body.kind, qv)
+    raise ValueError(f"unknown convention {body.convention!r}")
+
+
+def frames_single(robot: Robot, a, qj) -> Pose:
+    """Every body frame in the world, for one vector of joint variables qj. Returns stacked Pose."""
+    root = robot.base if robot.base is not None else Pose.identity()
+    Rs, ps = [], []
+    a_ext = jnp.append(a, 0.0)  # index -1 reads the constant zero of unused row entries
+    for body in robot.bodies:
+        row = a_ext[jnp.array(body.rows)] if body.rows else jnp.zeros(0)
+        qv = qj[jnp.array(body.inputs)] if body.inputs else jnp.zeros(0)
+        local = local_transform(body, row, qv)
+        parent = root if body.parent < 0 else Pose(Rs[body.parent], ps[body.parent])
+        world = parent.compose(local)
+        Rs.append(world.R)
+        ps.append(world.p)
+    return Pose(jnp.stack(Rs), jnp.stack(ps))
+
+
+def _batched(fn, q):
+    """Apply fn over all leading axes of q (..., n_inputs)."""
+    q = jnp.asarray(q)
+    if q.ndim == 1:
+        return fn(q)
+    lead = q.shape[:-1]
+    out = jax.vmap(fn)(q.reshape((-1, q.shape[-1])))
+    return jax.tree_util.tree_map(lambda x: x.reshape(lead + x.shape[1:]), out)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def frames(robot: Robot, a, q) -> Pose:
+    """All body frames (..., n_bodies, 3, 3)/(..., n_bodies, 3) for joint inputs q (..., n_inputs)."""
+    a = jnp.asarray(a, dtype=jnp.float64)
+
+    def one(qi):
+        return frames_single(robot, a, joint_variables(robot, a, qi))
+
+    return _batched(one, jnp.asarray(q, dtype=jnp.float64))
+
+
+def forward_open(robot: Robot, a, q) -> Pose:
+    """Tool frame of an open (serial or tree) robot for one or a batch of joint inputs."""
+    f = frames(robot, a, q)
+    return Pose(f.R[..., robot.tip, :, :], f.p[..., robot.tip, :])

@@ -1,0 +1,164 @@
+"""Measurement devices: tool pose -> what the device reads.
+
+Each device owns a block of parameters that is appended to the robot's parameter vector and
+identified with it: the device frame D (its pose in the robot base frame; translation and
+rotation vector, `dev.*`) and the marker on the tip link (`tool.*`). Both are unknown by default.
+A reading is expressed in the device frame: y = D^-1 T_tip M.
+
+| kind          | reading (one sample)            | parameters                  |
+|---------------|---------------------------------|-----------------------------|
+| "position"    | marker point, (3,)              | dev (6), tool point (3)     |
+| "pose"        | marker frame, (4, 4)            | dev (6), tool frame (6)     |
+| "orientation" | marker rotation, (3, 3)         | dev rotation (3), tool (3)  |
+| "three_point" | three sphere centres, (3, 3)    | dev (6); spheres known      |
+
+"tracker" (a laser tracker with unknown base frame) is the "position" device.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.kin.pose import Pose
+from jaxcal.kin.rotations import exp_so3, log_so3, skew
+
+DEVICE_PRIORITY = 0.5  # below every robot parameter: the robot's own base frame is preferred
+_FRAME = ("x", "y", "z", "rx", "ry", "rz")
+
+
+def frame_from_params(v) -> Pose:
+    """Pose from (x, y, z, rx, ry, rz) with (rx, ry, rz) a rotation vector."""
+    return Pose(exp_so3(v[3:6]), v[0:3])
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Device:
+    """A measurement device model. `read(pose, d)` maps one tool pose to one reading."""
+
+    kind: str
+    names: tuple[str, ...]
+    nominal_np: np.ndarray
+    units: tuple[str, ...]
+    free_mask: np.ndarray
+    reading_shape: tuple[int, ...]
+    targets: np.ndarray | None = None  # three-point target: sphere centres in the tip frame (3, 3)
+
+    @property
+    def nominal(self):
+        return jnp.asarray(self.nominal_np)
+
+    @property
+    def n_params(self) -> int:
+        return len(self.names)
+
+    @property
+    def priority(self) -> np.ndarray:
+        return np.full(self.n_params, DEVICE_PRIORITY)
+
+    def known(self, *prefixes: str) -> "Device":
+        """A copy with the parameters starting with the given prefixes ("dev", "tool") fixed."""
+        mask = np.array([not any(n.startswith(p + ".") for p in prefixes) for n in self.names]) & self.free_mask
+        return dataclasses.replace(self, free_mask=mask)
+
+    def with_values(self, **values) -> "Device":
+        """A copy whose nominal values are changed by name, e.g. with_values(**{'tool.z': 0.1})."""
+        nom = self.nominal_np.copy()
+        for k, v in values.items():
+            nom[self.names.index(k)] = v
+        return dataclasses.replace(self, nominal_np=nom)
+
+    # -- the model -------------------------------------------------------------------------
+    def read(self, tip: Pose, d):
+        """Reading for one tool pose `tip` (in the robot base frame) and device parameters d."""
+        if self.kind == "position":
+            D = frame_from_params(d[0:6])
+            return D.inverse().apply(tip.apply(d[6:9]))
+        if self.kind == "pose":
+            D = frame_from_params(d[0:6])
+            M = frame_from_params(d[6:12])
+            return D.inverse().compose(tip.compose(M)).matrix()
+        if self.kind == "orientation":
+            return exp_so3(d[0:3]).T @ tip.R @ exp_so3(d[3:6])
+        if self.kind == "three_point":
+            D = frame_from_params(d[0:6])
+            pts = jnp.asarray(self.targets)
+            return D.inverse().apply(tip.apply(pts))
+        raise ValueError(f"unknown device kind {self.kind!r}")
+
+    def residual(self, pred, meas):
+        """Residual vector of one sample: measured minus predicted (m and rad).
+
+        Orientation differences are rotation vectors of R_meas R_pred^T (seed 001 eq 23-24),
+        never differences of Euler angles.
+        """
+        if self.kind in ("position", "three_point"):
+            return (meas - pred).reshape(-1)
+        if self.kind == "pose":
+            dp = meas[:3, 3] - pred[:3, 3]
+            return jnp.concatenate([dp, log_so3(meas[:3, :3] @ pred[:3, :3].T)])
+        if self.kind == "orientation":
+            return log_so3(meas @ pred.T)
+        raise ValueError(f"unknown device kind {self.kind!r}")
+
+    def split_errors(self, res):
+        """(position error per sample (N,), orientation error per sample (N,) or None) from residuals (N, m)."""
+        if self.kind == "position":
+            return jnp.linalg.norm(res, axis=-1), None
+        if self.kind == "three_point":
+            r = res.reshape(res.shape[0], 3, 3)
+            return jnp.sqrt(jnp.mean(jnp.sum(r**2, -1), -1)), None
+        if self.kind == "pose":
+            return jnp.linalg.norm(res[:, :3], axis=-1), jnp.linalg.norm(res[:, 3:], axis=-1)
+        return None, jnp.linalg.norm(res, axis=-1)
+
+
+def _frame_names(prefix, parts=_FRAME):
+    return tuple(f"{prefix}.{p}" for p in parts)
+
+
+def make_device(kind: str, targets=None) -> Device:
+    """A device of the given kind with nominal (identity) frames, all parameters unknown."""
+    kind = {"tracker": "position", "laser_tracker": "position", "location": "pose", "full_pose": "pose"}.get(kind, kind)
+    if kind == "position":
+        names = _frame_names("dev") + _frame_names("tool", ("x", "y", "z"))
+        shape = (3,)
+    elif kind == "pose":
+        names = _frame_names("dev") + _frame_names("tool")
+        shape = (4, 4)
+    elif kind == "orientation":
+        names = _frame_names("dev", ("rx", "ry", "rz")) + _frame_names("tool", ("rx", "ry", "rz"))
+        shape = (3, 3)
+    elif kind == "three_point":
+        names = _frame_names("dev")
+        shape = (3, 3)
+        targets = np.array([[0.05, 0.0, 0.0], [0.0, 0.05, 0.0], [0.0, 0.0, 0.05]]) if targets is None else np.asarray(targets, float)
+        if targets.shape != (3, 3):
+            raise ValueError(f"three_point targets must be 3 sphere centres (3, 3), got shape {targets.shape}")
+    else:
+        raise ValueError(f"unknown device {kind!r}; expected position, tracker, pose, orientation or three_point")
+    units = tuple("angle" if n.split(".")[1].startswith("r") else "length" for n in names)
+    return Device(kind, names, np.zeros(len(names)), units, np.ones(len(names), bool), shape, targets)
+
+
+def three_point_orientation(P_initial, P_final):
+    """Rotation taking a three-point target from its initial to its final pose (seed 000 §3.3).
+
+    Line vectors v1 = p2 - p1, v2 = p3 - p1 and v3 = v1 x v2 of both triads give
+    R = [v'1 v'2 v'3][v1 v2 v3]^-1; noisy points make that matrix non-orthogonal, so it is
+    projected onto SO(3) by the SVD (the closest rotation in the Frobenius norm).
+    """
+
+    def lines(P):
+        v1, v2 = P[1] - P[0], P[2] - P[0]
+        return jnp.stack([v1, v2, jnp.cross(v1, v2)], axis=1)
+
+    A = lines(P_final) @ jnp.linalg.inv(lines(P_initial))
+    U, _, Vt = jnp.linalg.svd(A)
+    S = jnp.diag(jnp.array([1.0, 1.0, jnp.linalg.det(U @ Vt)]))
+    return U @ S @ Vt
+
+
+__all__ = ["Device", "make_device", "three_point_orientation", "frame_from_params", "skew"]

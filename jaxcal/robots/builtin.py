@@ -1,0 +1,54 @@
+"""Built-in robots from the seeds."""
+
+from __future__ import annotations
+
+import functools
+import os
+
+from jaxcal.robots.io import load_robot
+
+_REGISTRY: dict = {}
+
+
+def register(name: str):
+    def deco(fn):
+        _REGISTRY[name] = fn
+        return fn
+
+    return deco
+
+
+def available() -> tuple[str, ...]:
+    return tuple(sorted(_REGISTRY))
+
+
+def get(name: str):
+    """A built-in robot by name (see `available()`). Robots are immutable and cached."""
+    try:
+        factory = _REGISTRY[name]
+    except KeyError:
+        raise KeyError(f"unknown robot {name!r}; built-ins: {', '.join(available())}") from None
+    return factory()
+
+
+def _data_file(name: str) -> str:
+    return os.path.join(os.path.dirname(__file__), "data", name)
+
+
+@register("mrr1")
+@functools.cache
+def mrr1():
+    """MRR-1, the R-R-P modular robot of seed 000 Table 6.1 (18 module parameters).
+
+    home = the Table 6.1 joint motions (30 deg, 60 deg, 0.2 m), where the nominal tip is
+    p = (0.4330127, 0.65, 0.25) m, R = [[0,-1,0],[-1,0,0],[0,0,-1]] (Table 6.6).
+    """
+    return load_robot(_data_file("mrr1.yaml"))
+
+
+@register("stanford")
+@functools.cache
+def stanford():
+    """Stanford RRP3R manipulator of seed 001 Table 1 (43 parameters: theta0, r0, five per frame
+    1..7 and the gains K1..K6)."""
+    return load_robot(_data_file("stanford.yaml"))

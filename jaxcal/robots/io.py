@@ -1,0 +1,182 @@
+"""Robot files: YAML tables in each seed's own layout, read and written.
+
+PRY (seed 000 Table 6.1):                 MDH (seed 001 Table 1):
+    convention: pry                           convention: mdh
+    units: {length: m, angle: deg}            units: {length: m, angle: rad}
+    base: [0, 0, 0.8]                         columns: [sigma, alpha, d, theta, r, beta, K]
+    columns: [x, y, z, pitch, roll, yaw, type]  frames:
+    joints:                                     - [2, 0, 0, 1.5708, 0.5, 0, 0]
+      - [0.5, 0, -0.15, 0, 0, 0, revolute]      - ...
+
+MCPC (seed 004 Table 4.1):
+    convention: mcpc
+    columns: [a1, a2, a3, d1, d2, d3, predecessor, closure, type]
+    rows:
+      - [0, 0, 0, 0, 0, 0, 0, 0, 3]
+
+Optional keys: name, home, q_min, q_max, joint_names, actuated (mcpc), tip (mcpc). Errors name
+the file, the row and the field.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+
+import numpy as np
+import yaml
+
+from jaxcal.kin.conventions import PRY_KINDS
+from jaxcal.robots.build import mcpc_robot, mdh_robot, pry_robot
+
+_COLUMNS = {
+    "pry": ["x", "y", "z", "pitch", "roll", "yaw", "type"],
+    "mdh": ["sigma", "alpha", "d", "theta", "r", "beta", "K"],
+    "mcpc": ["a1", "a2", "a3", "d1", "d2", "d3", "predecessor", "closure", "type"],
+}
+_ROWS_KEY = {"pry": "joints", "mdh": "frames", "mcpc": "rows"}
+_TYPE_LETTERS = {"R": "revolute", "P": "prismatic", "C": "cylindrical", "U": "universal", "S": "spherical", "F": "fixed"}
+
+
+class RobotFileError(ValueError):
+    """A robot file that cannot be read; the message names the file, row and field."""
+
+
+def _angle_scale(doc, path):
+    unit = (doc.get("units") or {}).get("angle", "rad")
+    if unit not in ("rad", "deg"):
+        raise RobotFileError(f"{path}: units.angle must be 'rad' or 'deg', got {unit!r}")
+    return np.pi / 180.0 if unit == "deg" else 1.0
+
+
+def _length_scale(doc, path):
+    unit = (doc.get("units") or {}).get("length", "m")
+    if unit not in ("m", "mm"):
+        raise RobotFileError(f"{path}: units.length must be 'm' or 'mm', got {unit!r}")
+    return 1e-3 if unit == "mm" else 1.0
+
+
+def _number(value, path, row, field):
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise RobotFileError(f"{path}, row {row}, field '{field}': not a number: {value!r}") from None
+    if not np.isfinite(v):
+        raise RobotFileError(f"{path}, row {row}, field '{field}': non-finite value {value!r}")
+    return v
+
+
+def _rows(doc, conv, path):
+    key = _ROWS_KEY[conv]
+    rows = doc.get(key)
+    if not isinstance(rows, list) or not rows:
+        raise RobotFileError(f"{path}: '{key}' must be a non-empty list of rows {_COLUMNS[conv]}")
+    cols = _COLUMNS[conv]
+    for i, row in enumerate(rows, start=1 if conv != "mdh" else 0):
+        if not isinstance(row, (list, tuple)) or len(row) != len(cols):
+            n = len(row) if isinstance(row, (list, tuple)) else "not a list"
+            raise RobotFileError(f"{path}, row {i}: expected {len(cols)} fields {cols}, got {n}")
+    return rows
+
+
+def robot_from_dict(doc: dict, path: str = "<dict>"):
+    """Build a robot from a parsed YAML document."""
+    if not isinstance(doc, dict):
+        raise RobotFileError(f"{path}: expected a mapping at the top level")
+    conv = doc.get("convention")
+    if conv not in _COLUMNS:
+        raise RobotFileError(f"{path}: field 'convention' must be one of {sorted(_COLUMNS)}, got {conv!r}")
+    name = str(doc.get("name", os.path.splitext(os.path.basename(path))[0]))
+    ang, lng = _angle_scale(doc, path), _length_scale(doc, path)
+    rows = _rows(doc, conv, path)
+    common = {k: doc[k] for k in ("home", "q_min", "q_max", "joint_names") if k in doc}
+    try:
+        if conv == "pry":
+            base = [_number(v, path, "base", "base") * lng for v in doc.get("base", [0, 0, 0])]
+            modules = []
+            for i, row in enumerate(rows, start=1):
+                kind = _TYPE_LETTERS.get(str(row[6]), str(row[6]))
+                if kind not in PRY_KINDS:
+                    raise RobotFileError(f"{path}, row {i}, field 'type': unknown joint type {row[6]!r}")
+                b = [_number(row[k], path, i, _COLUMNS[conv][k]) * lng for k in range(3)]
+                pry = [_number(row[k], path, i, _COLUMNS[conv][k]) * ang for k in range(3, 6)]
+                modules.append((kind, b, pry))
+            return pry_robot(name, base, modules, **common)
+        if conv == "mdh":
+            frames = []
+            for j, row in enumerate(rows):
+                vals = [_number(v, path, j, f) for v, f in zip(row, _COLUMNS[conv])]
+                sigma = int(vals[0])
+                frames.append((sigma, vals[1] * ang, vals[2] * lng, vals[3] * ang, vals[4] * lng, vals[5] * ang, vals[6]))
+            return mdh_robot(name, frames, **common)
+        table = []
+        for i, row in enumerate(rows, start=1):
+            vals = [_number(v, path, i, f) for v, f in zip(row, _COLUMNS[conv])]
+            table.append([vals[0] * ang, vals[1] * ang, vals[2] * ang, vals[3] * lng, vals[4] * lng, vals[5] * lng,
+                          int(vals[6]), int(vals[7]), int(vals[8])])
+        extra = {k: doc[k] for k in ("actuated", "tip") if k in doc}
+        return mcpc_robot(name, table, **common, **extra)
+    except RobotFileError:
+        raise
+    except ValueError as exc:  # builder errors name the row; add the file
+        raise RobotFileError(f"{path}: {exc}") from None
+
+
+def load_robot(path: str, **kwargs):
+    """Load a robot from YAML (seed table layouts) or URDF (`base=`, `tip=` link names)."""
+    if str(path).lower().endswith(".urdf"):
+        from jaxcal.robots.urdf import load_urdf  # issue: URDF import
+
+        return load_urdf(path, **kwargs)
+    if not os.path.exists(path):
+        raise RobotFileError(f"{path}: no such file")
+    try:
+        with open(path) as fh:
+            doc = yaml.safe_load(fh)
+    except yaml.YAMLError as exc:
+        raise RobotFileError(f"{path}: not valid YAML: {exc}") from None
+    return robot_from_dict(doc, path)
+
+
+def robot_to_dict(robot, a=None) -> dict:
+    """The YAML document of a robot built from a seed table (with parameters a, default nominal).
+
+    Angles are written in radians and lengths in metres.
+    """
+    a = np.asarray(robot.nominal_np if a is None else a, float)
+    conv = robot.bodies[0].convention
+    ext = np.append(a, 0.0)
+    doc = {"name": robot.name, "convention": conv, "units": {"length": "m", "angle": "rad"},
+           "columns": _COLUMNS[conv], "home": robot.home_np.tolist(), "q_min": robot.q_min.tolist(),
+           "q_max": robot.q_max.tolist(), "joint_names": list(robot.joint_names)}
+    rows = []
+    if conv == "pry":
+        doc["base"] = np.asarray(robot.base.p).tolist()
+        for b in robot.bodies:
+            rows.append([float(ext[i]) for i in b.rows] + [b.kind])
+    elif conv == "mdh":
+        gains = dict(zip([b for b in robot.bodies if b.inputs], robot.gains or ()))
+        for b in robot.bodies:
+            al, d, th, r, be = (float(ext[i]) for i in b.rows)
+            k = float(a[gains[b]]) if b in gains else 0.0
+            rows.append([int(b.kind), al, d, th, r, be, k])
+    else:
+        closures = (robot.closure or {}).get("pairs", {}) if isinstance(robot.closure, dict) else {}
+        for i, b in enumerate(robot.bodies, start=1):
+            rows.append([float(ext[k]) for k in b.rows] + [b.parent + 1, int(closures.get(i, 0)), int(b.kind)])
+        doc["actuated"] = [i for i, b in enumerate(robot.bodies, start=1) if b.inputs]
+        doc["tip"] = robot.tip + 1
+    doc[_ROWS_KEY[conv]] = rows
+    return doc
+
+
+def save_robot(robot, path: str, a=None) -> str:
+    """Write the robot (with parameters a) as YAML atomically (temp file, then rename)."""
+    text = yaml.safe_dump(robot_to_dict(robot, a), sort_keys=False, default_flow_style=None)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, suffix=".yaml.tmp")
+    with os.fdopen(fd, "w") as fh:
+        fh.write(text)
+    os.replace(tmp, path)
+    return path

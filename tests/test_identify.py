@@ -1,0 +1,140 @@
+"""Identification: noise-free recovery, noise level, solvers, options, bad input."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxcal as jc
+
+
+def _truth_in_base_set(rb, device, known, seed):
+    """A true parameter vector that differs from nominal only in the base-set parameters."""
+    q = jc.random_configurations(rb, 40, seed=seed)
+    probe = jc.identify(rb, jc.simulate(rb, rb.nominal, q, device), known=known)
+    est = [n for n in probe.estimated if n in rb.names]
+    a = np.asarray(rb.nominal_np, float).copy()
+    rng = np.random.default_rng(seed)
+    for n in est:
+        a[rb.index(n)] += 0.003 * rng.standard_normal()
+    return jnp.asarray(a), q, est
+
+
+@pytest.mark.parametrize("name, device, known", [
+    ("stanford", "position", ("dev", "tool")),
+    ("mrr1", "pose", ("dev", "tool")),
+])
+def test_noise_free_recovery_of_base_parameters(name, device, known):
+    rb = jc.robots.get(name)
+    a_true, q, est = _truth_in_base_set(rb, device, known, seed=11)
+    fit = jc.identify(rb, jc.simulate(rb, a_true, q, device), known=known)
+    err = np.abs(np.asarray(fit.a) - np.asarray(a_true))
+    scale = np.maximum(np.abs(np.asarray(a_true)), 1.0)
+    assert (err / scale).max() < 1e-9, dict(zip(rb.names, err))
+    assert fit.rms_after < 1e-9 and fit.converged
+
+
+def test_noise_free_stanford_all_errors_reports_regrouped_and_predicts_exactly():
+    """All 43 parameters perturbed; the tracker frame and marker unknown. The base set (31 robot
+    parameters, GECARO Table 2 'position') is estimated and the model predicts new poses exactly."""
+    rb = jc.robots.get("stanford")
+    a_true = jc.perturb(rb, 0.003, seed=2)
+    data = jc.simulate(rb, a_true, jc.random_configurations(rb, 50, seed=3), "position")
+    fit = jc.identify(rb, data)
+    robot_est = [n for n in fit.estimated if n in rb.names]
+    assert len(robot_est) == 31
+    assert {"j1.beta", "j2.beta", "j3.theta", "j4.d", "j4.r"} <= set(fit.undetermined)
+    q_new = jc.random_configurations(rb, 20, seed=4)
+    truth = jc.simulate(rb, a_true, q_new, "position")
+    np.testing.assert_allclose(fit.predict(q_new), truth.y, atol=1e-10)
+    assert fit.rms_on(truth) < 1e-7  # mm
+
+
+def test_noisy_calibration_reaches_noise_level():
+    rb = jc.robots.get("stanford")
+    a_true = jc.perturb(rb, {"length": 1e-3, "angle": 2e-3, "gain": 1e-3}, seed=8)
+    sigma = 2e-5
+    train = jc.simulate(rb, a_true, jc.random_configurations(rb, 150, seed=1), "position", noise=sigma, seed=2)
+    test = jc.simulate(rb, a_true, jc.random_configurations(rb, 60, seed=3), "position", noise=sigma, seed=4)
+    fit = jc.identify(rb, train, sigma_position=sigma)
+    floor = np.sqrt(3) * sigma * 1e3  # RMS of the 3-D noise vector, mm
+    assert fit.rms_before > 50 * floor
+    assert 0.8 * floor < fit.rms_after < 1.05 * floor
+    assert fit.rms_on(test) < 1.3 * floor
+    assert fit.sigma == pytest.approx(1.0, rel=0.15)  # weighted residual std ~ 1 when weights = 1/sigma
+
+
+@pytest.mark.parametrize("solver", ["gn", "dogleg", "bfgs"])
+def test_other_solvers_reach_the_lm_optimum(solver):
+    rb = jc.robots.get("mrr1")
+    a_true = jc.perturb(rb, 0.003, seed=6)
+    data = jc.simulate(rb, a_true, jc.random_configurations(rb, 30, seed=7), "pose")
+    fit = jc.identify(rb, data, known=("dev",), solver=solver, max_steps=500)
+    assert fit.rms_after < (1e-6 if solver == "bfgs" else 1e-9)
+
+
+def test_bias_bounds_and_multistart():
+    rb = jc.robots.get("mrr1")
+    a_true = jc.perturb(rb, 0.003, seed=6)
+    data = jc.simulate(rb, a_true, jc.random_configurations(rb, 30, seed=7), "pose")
+    # decreasing bias mu (seed 004 eq 3.12) ends at mu = 0: same optimum
+    fit = jc.identify(rb, data, known=("dev",), bias=1.0)
+    assert fit.rms_after < 1e-9
+    # a bound that excludes the true value is respected
+    j = rb.index("j1.bx")
+    hi = float(a_true[j]) - 1e-3
+    bounded = jc.identify(rb, data, known=("dev",), bounds={"j1.bx": (0.4, hi)})
+    assert float(bounded.a[j]) <= hi + 1e-6 and bounded.rms_after > 1e-3
+    # multi-start from 8 random starts finds the same optimum
+    ms = jc.identify(rb, data, known=("dev",), multistart=8)
+    assert ms.rms_after < 1e-9
+
+
+def test_history_and_report():
+    rb = jc.robots.get("mrr1")
+    data = jc.simulate(rb, jc.perturb(rb, 0.003, seed=1), jc.random_configurations(rb, 20, seed=2), "pose")
+    fit = jc.identify(rb, data, known=("dev",), history=True)
+    assert fit.history[0] > 1e3 * fit.history[-1]
+    text = fit.report() + fit.parameter_table()
+    assert "mrr1" in text and "undetermined" in text
+    assert fit.timings["compile_s"] >= 0 and fit.timings["run_s"] > 0
+
+
+def test_bad_input_errors():
+    rb = jc.robots.get("mrr1")
+    with pytest.raises(jc.DataError, match=r"sample\(s\) \[2\]"):
+        jc.Dataset(q=np.ones((4, 3)), y=np.where(np.arange(12).reshape(4, 3) == 7, np.nan, 1.0))
+    with pytest.raises(jc.DataError, match="shape"):
+        jc.Dataset(q=np.ones((4, 3)), y=np.ones((5, 3)))
+    with pytest.raises(jc.DataError, match="R=.*p="):
+        jc.Dataset(q=np.ones((4, 3)), device="pose")
+    data = jc.Dataset(q=np.ones((4, 2)), y=np.ones((4, 3)))
+    with pytest.raises(ValueError, match="2 joint columns"):
+        jc.identify(rb, data)
+    with pytest.raises(ValueError, match="unknown solver"):
+        jc.identify(rb, jc.Dataset(q=np.ones((4, 3)), y=np.ones((4, 3))), solver="newton")
+    with pytest.raises(ValueError, match="unknown device"):
+        jc.make_device("sonar")
+
+
+def test_csv_reader_and_its_errors(tmp_path):
+    rb = jc.robots.get("mrr1")
+    a = jc.perturb(rb, 0.003, seed=1)
+    q = jc.random_configurations(rb, 6)
+    data = jc.simulate(rb, a, q, "position")
+    lines = ["j1,j2,j3,x,y,z,temperature"]
+    for qi, yi in zip(q, data.y):
+        lines.append(",".join(f"{v:.17g}" for v in list(qi) + list(yi * 1e3) + [20.0]))
+    path = tmp_path / "d.csv"
+    path.write_text("\n".join(lines) + "\n")
+    back = jc.Dataset.from_csv(str(path), joints=("j1", "j2", "j3"), length_unit="mm", covariates=("temperature",))
+    np.testing.assert_allclose(back.y, data.y, atol=1e-15)
+    assert back.covariates["temperature"].shape == (6,)
+    bad = lines[:3] + ["0.1,0.2,abc,1,2,3,20"] + lines[3:]
+    path.write_text("\n".join(bad) + "\n")
+    with pytest.raises(jc.DataError, match=r"line 4, column 'j3'"):
+        jc.Dataset.from_csv(str(path), joints=("j1", "j2", "j3"))
+    path.write_text("\n".join(lines[:2] + ["1,2,3"]) + "\n")
+    with pytest.raises(jc.DataError, match="line 3: 3 fields"):
+        jc.Dataset.from_csv(str(path), joints=("j1", "j2", "j3"))
+    with pytest.raises(jc.DataError, match="missing column"):
+        jc.Dataset.from_csv(str(path), joints=("q1", "j2", "j3"))
