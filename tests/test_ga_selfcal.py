@@ -49,3 +49,27 @@ def test_lm_recovers_identifiable_parameters_from_joint_readings_only(stanford_a
     err = np.abs(np.asarray(a) - a_true)[est]
     assert err.max() < 1e-8, dict(zip([rb.names[i] for i in est], err))
     assert float(jnp.max(jnp.abs(sc.residual(rb, a, Q1, Q2, d)))) < 1e-10
+
+
+def test_selfcal_residual_jacobian_matches_central_differences(stanford_aims):
+    """jacfwd through the closed-form target elimination vs central FD (h = 1e-6): rel. err < 1e-6."""
+    import jax
+
+    from conftest import central_fd, rel_err
+
+    rb, a_true, Q1, Q2, d, _, _ = stanford_aims
+    Q1s, Q2s = Q1[:5], Q2[:5]
+    f = jax.jit(lambda a: sc.residual(rb, a, Q1s, Q2s, d))
+    J = np.asarray(jax.jacfwd(f)(jnp.asarray(a_true)))
+    assert rel_err(J, central_fd(f, a_true)) < 1e-6
+
+
+def test_ga_reduces_the_self_calibration_residual(stanford_aims):
+    """GA on the identifiable set with the same residual (sum of squares): measured cost falls by
+    200 generations of 50 (26 variables, bound +-2 mm / mrad): 9.3e-6 at nominal -> 4.7e-8 (measured,
+    factor 5e-3; the GA does not reach the LM optimum ~0 here, see docs/ga.md)."""
+    rb, a_true, Q1, Q2, d, est, _ = stanford_aims
+    a, best = sc.identify_ga(rb, Q1, Q2, d, est, population=50, generations=200, bound=0.002, seed=0)
+    f0 = float(jnp.sum(sc.residual(rb, rb.nominal, Q1, Q2, d) ** 2))
+    assert np.all(np.diff(best) <= 1e-18)
+    assert best[-1] < 0.05 * f0, (best[-1], f0)
