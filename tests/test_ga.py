@@ -87,3 +87,14 @@ def test_level1_monte_carlo_stops_by_eq_5_7(mrr1_data):
     assert np.allclose(never.mean, never.dg.mean(0)) and np.allclose(never.running_mean[-1], never.mean)
     loose = mc.level1(rb, data, tol=1.0, **kw)
     assert loose.stopped and loose.runs == 2
+
+
+def test_level2_monte_carlo_over_configuration_sets(mrr1_data):
+    rb, a_true, _ = mrr1_data
+    res = mc.level2(rb, jnp.asarray(a_true), "pose", m=2, n_configurations=8, tol=0.0, batch=4, max_runs=4,
+                    population=20, generations=40, chunk=20)
+    assert res.means.shape == (2, 18) and len(res.level1) == 2
+    assert np.allclose(res.spread, res.means.std(0, ddof=1))
+    assert all(r.runs == 4 and np.all(np.abs(r.dg) <= 0.005 + 1e-15) for r in res.level1)
+    # different configuration sets give different level-1 means (the point of level 2)
+    assert np.max(np.abs(res.means[0] - res.means[1])) > 0
