@@ -11,7 +11,7 @@ from jaxcal import (
            measure,
            robots,
 )
-from jaxcal import ga  # noqa: E402  (genetic algorithm, issue 5)
+from jaxcal import ga  # noqa: E402  (genetic algorithm)
 from jaxcal.fit import DataError, Dataset, FitResult, identify, perturb, random_configurations, simulate
 from jaxcal.forward import forward
 from jaxcal.kin import Pose, Robot

@@ -54,7 +54,6 @@ def test_lm_recovers_identifiable_parameters_from_joint_readings_only(stanford_a
 def test_selfcal_residual_jacobian_matches_central_differences(stanford_aims):
     """jacfwd through the closed-form target elimination vs central FD (h = 1e-6): rel. err < 1e-6."""
     import jax
-
     from conftest import central_fd, rel_err
 
     rb, a_true, Q1, Q2, d, _, _ = stanford_aims

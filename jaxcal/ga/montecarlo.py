@@ -86,5 +86,6 @@ def level2(robot, a_true, device, *, m=5, n_configurations=8, noise=None, seed=0
         data = simulate(robot, a_true, q, device, noise=noise, device_params=device_params, seed=seed + 100 + j)
         results.append(level1(robot, data, seed=seed + 10_000 * (j + 1), device_params=device_params, **level1_kw))
     means = np.stack([r.mean for r in results])
-    return Level2Result(means=means, stds=np.stack([r.std for r in results]), spread=means.std(0, ddof=1) if m > 1 else np.zeros(means.shape[1]),
+    spread = means.std(0, ddof=1) if m > 1 else np.zeros(means.shape[1])
+    return Level2Result(means=means, stds=np.stack([r.std for r in results]), spread=spread,
                         level1=results, free=results[0].free)
