@@ -88,6 +88,22 @@ def _solve_many(x0s, args, *, robot, device, solver, max_steps, rtol, atol):
     return jax.vmap(one, (0, None))(x0s, args)
 
 
+_EXECUTABLES: dict = {}
+
+
+def _executable(fn, cfg, x0, args):
+    """Compiled `fn` for these static settings and argument shapes, and the seconds spent compiling
+    (0 when it was compiled before in this process). Robots and devices hash by identity."""
+    shapes = jax.tree_util.tree_map(lambda v: (jnp.shape(v), jnp.result_type(v)), (x0, args))
+    key = (fn, tuple(sorted(cfg.items(), key=lambda kv: kv[0])), str(shapes))
+    if key in _EXECUTABLES:
+        return _EXECUTABLES[key], 0.0
+    t = time.perf_counter()
+    exe = fn.lower(x0, args, **cfg).compile()
+    _EXECUTABLES[key] = exe
+    return exe, time.perf_counter() - t
+
+
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def _errors(robot, device, a_full, q, y):
     """Unweighted per-sample (position, orientation) errors."""
@@ -149,7 +165,22 @@ class FitResult:
     timings: dict
     history: np.ndarray | None = None
     sigma: float | None = None  # residual standard deviation (weighted units) at the solution
+    covariance: np.ndarray | None = None  # linearised covariance of the estimated parameters (seed 004 eq 3.31-3.32)
     info: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def std_errors(self) -> dict:
+        """Standard error of each estimated parameter (sqrt of the covariance diagonal)."""
+        if self.covariance is None:
+            return {}
+        return dict(zip(self.estimated, np.sqrt(np.maximum(np.diag(self.covariance), 0.0))))
+
+    def poorly_determined(self, relative: float = 0.1) -> list[str]:
+        """Estimated parameters whose standard error exceeds `relative` x their typical size
+        (0.01 m/rad for geometry, 1 for gains) - plus every undetermined one."""
+        units = dict(zip(self.names, tuple(self.robot.units) + tuple(self.device.units)))
+        out = [n for n, se in self.std_errors.items() if se > relative * (1.0 if units[n] in ("gain", "scale") else 0.01)]
+        return out + list(self.undetermined)
 
     @property
     def a_full(self):
@@ -239,9 +270,10 @@ def identify(
     sigma_position: float = 1e-3,
     sigma_orientation: float = 1e-3,
     max_steps: int = 200,
-    rtol: float = 1e-10,
-    atol: float = 1e-13,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
     history: bool = False,
+    sample_weights=None,
 ) -> FitResult:
     """Identify robot and device parameters from a dataset.
 
@@ -254,6 +286,7 @@ def identify(
     bounds: {name: (low, high)} enforced by a penalty (seed 004 §3.3).
     multistart: number of extra random starts (vmapped), spread 1 cm / 0.01 rad around a0.
     sigma_position, sigma_orientation: residual weights 1/sigma (m, rad).
+    sample_weights: optional (N,) extra weight per sample (robust re-weighting, outlier removal).
     """
     t_start = time.perf_counter()
     device = data.device
@@ -276,6 +309,11 @@ def identify(
 
     q, y = jnp.asarray(data.q), jnp.asarray(data.y)
     w = residual_weights(device, sigma_position, sigma_orientation)
+    if sample_weights is not None:
+        sw = np.asarray(sample_weights, float)
+        if sw.shape != (len(data),) or not np.all(np.isfinite(sw)) or np.any(sw < 0):
+            raise ValueError(f"sample_weights must be {len(data)} finite non-negative numbers")
+        w = jnp.asarray(sw)[:, None] * w[None, :]
     cfg = dict(robot=robot, device=device, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol)
 
     x_scale = jnp.asarray(_x_scale(units))
@@ -298,15 +336,12 @@ def identify(
         return pr, orr
 
     compile_s = 0.0
-    compiled = {}
 
     def solve(x0, args):
         nonlocal compile_s
-        if "one" not in compiled:
-            tc = time.perf_counter()
-            compiled["one"] = _solve.lower(x0, args, **cfg).compile()
-            compile_s += time.perf_counter() - tc
-        return compiled["one"](x0, args)
+        exe, dt = _executable(_solve, cfg, x0, args)
+        compile_s += dt
+        return exe(x0, args)
 
     # 1. The fair "before": nominal robot, unknown device frame / marker fitted.
     dev_idx = np.flatnonzero(dev_free) + nr
@@ -342,9 +377,8 @@ def identify(
             spread = np.zeros((multistart, len(names)))
             spread[:, est_idx] = np.asarray(x_scale)[est_idx] * rng.uniform(-1, 1, (multistart, len(est_idx)))
             x0s = jnp.concatenate([x[None], x[None] + spread], axis=0)
-            tc = time.perf_counter()
-            many = _solve_many.lower(x0s, args, **cfg).compile()
-            compile_s += time.perf_counter() - tc
+            many, dt = _executable(_solve_many, cfg, x0s, args)
+            compile_s += dt
             xs, oks, steps, costs = many(x0s, args)
             best = int(jnp.argmin(jnp.where(oks, costs, jnp.inf))) if bool(jnp.any(oks)) else int(jnp.argmin(costs))
             x, ok, n_steps = xs[best], bool(oks[best]), int(steps[best])
@@ -363,6 +397,8 @@ def identify(
     r_final = np.asarray(residuals(robot, device, a_full, q, y, w)).reshape(-1)
     dof = max(r_final.size - len(est_idx), 1)
     weak = _weak_directions(J[:, est_idx], [names[i] for i in est_idx])
+    sigma_hat = float(np.sqrt(r_final @ r_final / dof))
+    covariance = sigma_hat**2 * np.linalg.pinv(J[:, est_idx].T @ J[:, est_idx]) if len(est_idx) else None
     pick = (lambda p, o: p if p is not None else o)
     return FitResult(
         robot=robot, device=device, a=a_full[:nr], device_params=a_full[nr:], names=names,
@@ -373,7 +409,7 @@ def identify(
         estimated=tuple(names[i] for i in est_idx), undetermined=undetermined, no_effect=no_effect,
         regrouped=regrouped, weak_directions=weak,
         timings={"compile_s": compile_s, "run_s": run_s, "total_s": time.perf_counter() - t_start},
-        history=hist, sigma=float(np.sqrt(r_final @ r_final / dof)),
+        history=hist, sigma=sigma_hat, covariance=covariance,
         info={"n_samples": len(data), "estimated_index": est_idx, "solver": solver},
     )
 
