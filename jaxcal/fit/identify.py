@@ -410,7 +410,8 @@ def identify(
         regrouped=regrouped, weak_directions=weak,
         timings={"compile_s": compile_s, "run_s": run_s, "total_s": time.perf_counter() - t_start},
         history=hist, sigma=sigma_hat, covariance=covariance,
-        info={"n_samples": len(data), "estimated_index": est_idx, "solver": solver},
+        info={"n_samples": len(data), "estimated_index": est_idx, "solver": solver,
+              "sigma_position": sigma_position, "sigma_orientation": sigma_orientation},
     )
 
 

@@ -124,13 +124,16 @@ def reject_outliers(samples, reference, k: float = 5.0):
 def cost_sensitivity(fit, data: Dataset, cov, extent=None):
     """Sensitivity of the cost along each covariance eigenvector e_j (seed 004 eq 4.5):
     d rho_j = rho(a + s_j e_j) - rho(a), with s_j the half-width of the confidence ellipsoid
-    along e_j (default sqrt(lambda_j)). Returns (eigenvalues, eigenvectors, sensitivities)."""
+    along e_j (default sqrt(lambda_j)). The cost is the fit's weighted sum of squares, so with the
+    linear covariance and the default extent every sensitivity is ~1 (one chi-square unit); with a
+    common extent the sensitivities fall as 1/lambda_j, the inverse relation of Figure 4.20.
+    Returns (eigenvalues, eigenvectors, sensitivities)."""
     lam, V = np.linalg.eigh(np.asarray(cov))
     order = np.argsort(lam)[::-1]
     lam, V = lam[order], V[:, order]
-    s = np.sqrt(np.maximum(lam, 0.0)) if extent is None else np.asarray(extent)
+    s = np.sqrt(np.maximum(lam, 0.0)) if extent is None else np.broadcast_to(np.asarray(extent, float), lam.shape)
     idx = fit.info["estimated_index"]
-    w = residual_weights(fit.device, 1e-3, 1e-3)
+    w = residual_weights(fit.device, fit.info["sigma_position"], fit.info["sigma_orientation"])
     q, y = jnp.asarray(data.q), jnp.asarray(data.y)
     cost = jax.jit(lambda a: jnp.sum(residuals(fit.robot, fit.device, a, q, y, w) ** 2))
     base = float(cost(fit.a_full))
@@ -201,6 +204,7 @@ class MonteCarloResult:
     covariance_linear: np.ndarray
     timings: dict
     keep: np.ndarray  # outlier mask (eq 4.2) over the converged runs
+    residual_norms: np.ndarray  # (runs,) 2-norm of the weighted residual after identification (eq 4.1)
 
     @property
     def covariance_mc(self):
@@ -231,12 +235,25 @@ class MonteCarloResult:
         return "\n".join(lines)
 
 
-def _mesh_put(x, devices):
-    """Place the leading (run) axis of x across `devices` (no-op for one device)."""
-    if devices is None or len(devices) < 2:
-        return x
-    mesh = jax.sharding.Mesh(np.array(devices), ("runs",))
-    return jax.device_put(x, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("runs")))
+def _sharded_chunk(devices, cfg):
+    """The chunk solver split over `devices`: each device gets its slice of the runs (committed
+    with `jax.device_put`) and runs its own vmapped LM, so the solver loops never synchronise.
+
+    On accelerators the slices are dispatched asynchronously and run at the same time. On forced
+    host CPU devices (XLA_FLAGS=--xla_force_host_platform_device_count) they run one after the
+    other: two concurrent while-loop programs deadlocked there (both wait on the one shared
+    thread pool), and so did a jit over a NamedSharding of the runs axis."""
+    concurrent = devices[0].platform != "cpu"
+
+    def run(ys, x0, args):
+        parts = np.split(np.asarray(ys), len(devices))
+        outs = []
+        for p, d in zip(parts, devices):
+            out = _mc_chunk(jax.device_put(p, d), jax.device_put(x0, d), jax.device_put(args, d), **cfg)
+            outs.append(out if concurrent else jax.block_until_ready(out))
+        return jax.tree_util.tree_map(lambda *v: np.concatenate([np.asarray(x) for x in v]), *outs)
+
+    return run
 
 
 def monte_carlo(robot, a_true, q, device="position", noise=None, runs: int = 100, known=(), seed: int = 0,
@@ -246,8 +263,8 @@ def monte_carlo(robot, a_true, q, device="position", noise=None, runs: int = 100
     identified, as vmapped compiled LM solves in chunks of `chunk` (seed 004 §4.3.1).
 
     The estimated set and the prior are those of the noise-free identification; every run starts
-    there with a fixed iteration budget and reports its own convergence flag. `devices`: a list
-    of JAX devices to shard the runs over (default: all local devices when there are several).
+    there with a fixed iteration budget and reports its own convergence flag. `devices`: the JAX
+    devices to shard the runs over (default: all local devices; [] or one device: no sharding).
     """
     dev = _as_device(device)
     noise = noise or {}
@@ -259,7 +276,8 @@ def monte_carlo(robot, a_true, q, device="position", noise=None, runs: int = 100
     cov_lin = linear_covariance(ref, clean, sigma_position=max(s_p, 1e-300), sigma_orientation=max(s_r, 1e-300),
                                 sigma_actuator=s_q) if (s_p or s_r or s_q) else np.zeros((len(idx), len(idx)))
     if devices is None:
-        devices = jax.devices() if len(jax.devices()) > 1 else None
+        devices = jax.devices()
+    devices = list(devices) if devices is not None and len(devices) > 1 else None  # [] or one device: no sharding
     n_dev = 1 if devices is None else len(devices)
     chunk = max(n_dev, (chunk // n_dev) * n_dev)
     mask = np.zeros(len(ref.names))
@@ -276,7 +294,7 @@ def monte_carlo(robot, a_true, q, device="position", noise=None, runs: int = 100
     keys = jax.random.split(jax.random.PRNGKey(seed), runs)
     gen = jax.jit(jax.vmap(lambda k: _noisy_readings(robot, dev, jnp.asarray(a_true), d_true, jnp.asarray(clean.q),
                                                      k, s_q, s_p, s_r)))
-    est, ok, its = [], [], []
+    est, ok, its, norms = [], [], [], []
     t0 = time.perf_counter()
     compile_s = 0.0
     for start in range(0, runs, chunk):
@@ -284,24 +302,29 @@ def monte_carlo(robot, a_true, q, device="position", noise=None, runs: int = 100
         pad = chunk - len(k)
         if pad:
             k = jnp.concatenate([k, jnp.repeat(k[-1:], pad, 0)])
-        ys = _mesh_put(gen(k), devices)
+        ys = gen(k)
         tc = time.perf_counter()
         if start == 0:
-            exe = _mc_chunk.lower(ys, a_prior, args, **cfg).compile()
+            if devices:
+                exe = _sharded_chunk(devices, cfg)
+                jax.block_until_ready(exe(ys, a_prior, args))  # compile on first call
+            else:
+                exe = _mc_chunk.lower(ys, a_prior, args, **cfg).compile()
             compile_s = time.perf_counter() - tc
-        x, conv, steps, _ = exe(ys, a_prior, args)
+        x, conv, steps, cost = exe(ys, a_prior, args)
+        norms.append(np.sqrt(np.asarray(cost))[: chunk - pad])
         est.append(np.asarray(x)[: chunk - pad, :][:, idx])
         ok.append(np.asarray(conv)[: chunk - pad])
         its.append(np.asarray(steps)[: chunk - pad])
     run_s = time.perf_counter() - t0 - compile_s
-    est, ok, its = np.concatenate(est), np.concatenate(ok), np.concatenate(its)
+    est, ok, its, norms = np.concatenate(est), np.concatenate(ok), np.concatenate(its), np.concatenate(norms)
     reference = np.asarray(ref.a_full)[idx]
     keep = np.zeros(len(est), bool)
     if ok.any():
         keep_ok, _, _ = reject_outliers(est[ok], reference, outlier_k)
         keep[np.flatnonzero(ok)] = keep_ok
     return MonteCarloResult(tuple(ref.names[i] for i in idx), est, ok, its, reference, cov_lin,
-                            {"compile_s": compile_s, "run_s": run_s, "devices": n_dev, "chunk": chunk}, keep)
+                            {"compile_s": compile_s, "run_s": run_s, "devices": n_dev, "chunk": chunk}, keep, norms)
 
 
 __all__ = ["MonteCarloResult", "chi2_qq", "confidence_intervals", "cost_sensitivity", "ellipsoid_coverage",
