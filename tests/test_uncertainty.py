@@ -123,7 +123,7 @@ def test_cost_sensitivity_along_covariance_eigenvectors():
     a = jc.perturb(rb, 0.003, seed=6)
     data = jc.simulate(rb, a, jc.random_configurations(rb, 30, seed=3), "position", noise=1e-5, seed=1)
     fit = jc.identify(rb, data, known=("dev",), sigma_position=1e-5)
-    cov = un.linear_covariance(fit, data, sigma_position=1e-5)
+    cov = un.linear_covariance(fit, data)
     lam, V, sens = un.cost_sensitivity(fit, data, cov)
     np.testing.assert_allclose(sens, 1.0, rtol=0.02)
     lam, V, sens = un.cost_sensitivity(fit, data, cov, extent=1e-7)

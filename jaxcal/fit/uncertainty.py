@@ -33,38 +33,45 @@ from jaxcal.kin.rotations import exp_so3
 # ------------------------------------------------------------------------------------------
 # Linearised covariance
 # ------------------------------------------------------------------------------------------
-def linear_covariance(fit, data: Dataset, sigma_position=None, sigma_orientation=None, sigma_actuator=0.0):
+def linear_covariance(fit, data: Dataset, noise=None):
     """Covariance of the estimated parameters by linear analysis (seed 004 eq 3.28-3.30).
 
-    Sigma_a = H^-1 J^T W Sigma_y W J H^-1 with H = J^T W^2 J, the measurement covariance
-    Sigma_m = diag(sigma^2) and the actuator repeatability mapped through the model:
-    Sigma_y = Sigma_m + J_theta Sigma_theta J_theta^T per sample (eq 3.29). Without actuator
-    noise this is (J^T W^2 J)^-1. Only the base-set columns enter, so H is regular.
+    For the weighted least-squares estimate with solver weights W = diag(1/sigma^2) (the fit's
+    sigma_position / sigma_orientation), Sigma_a = A^-1 J^T W Sigma_y W J A^-1 with A = J^T W J.
+    Sigma_y holds the measurement noise and the actuator repeatability mapped through the model:
+    Sigma_y = Sigma_m + J_theta Sigma_theta J_theta^T per sample (eq 3.29). `noise` is a dict
+    with "position", "orientation" (sd of the readings) and "actuator" (sd of the joints); by
+    default the measurement noise equals the fit's sigmas and there is no actuator noise, and
+    then Sigma_a = A^-1. Only the base-set columns enter, so A is regular.
     """
     robot, device = fit.robot, fit.device
-    sp = sigma_position if sigma_position is not None else 1e-3
-    so = sigma_orientation if sigma_orientation is not None else 1e-3
-    w = np.asarray(residual_weights(device, sp, so))
+    info = fit.info
+    w_solver = np.asarray(residual_weights(device, info["sigma_position"], info["sigma_orientation"])) ** 2
+    noise = noise or {"position": info["sigma_position"], "orientation": info["sigma_orientation"]}
+    var_m = np.asarray(residual_weights(device, 1.0, 1.0))  # ones, one per residual component
+    pos_comp = np.asarray(residual_weights(device, 1.0, np.inf)) > 0
+    var_m = np.where(pos_comp, noise.get("position", 0.0) ** 2, noise.get("orientation", 0.0) ** 2) * var_m
     q, y = jnp.asarray(data.q), jnp.asarray(data.y)
-    idx = fit.info["estimated_index"]
+    idx = info["estimated_index"]
     a_full = fit.a_full
-    unit_w = jnp.ones_like(jnp.asarray(w))
-    J = np.asarray(jax.jacfwd(lambda a: residuals(robot, device, a, q, y, unit_w).reshape(-1))(a_full))[:, idx]
-    Jw = J * np.tile(w, len(data))[:, None]
-    H = Jw.T @ Jw
-    Hinv = np.linalg.pinv(H)
-    if not sigma_actuator:
-        return Hinv
+    ones = jnp.ones(len(w_solver))
+    J = np.asarray(jax.jacfwd(lambda a: residuals(robot, device, a, q, y, ones).reshape(-1))(a_full))[:, idx]
+    n, m = len(data), len(w_solver)
+    Jb = J.reshape(n, m, -1)
+    WJ = Jb * w_solver[None, :, None]
+    A = np.einsum("nia,nib->ab", Jb, WJ)
+    Ainv = np.linalg.pinv(A)
+    s_q = noise.get("actuator", 0.0)
+    if s_q:
+        def sample_res(qi, yi):
+            return residuals(robot, device, a_full, qi[None], yi[None], ones)[0]
 
-    def sample_res(qi, yi):
-        return residuals(robot, device, a_full, qi[None], yi[None], unit_w)[0]
-
-    Jq = np.asarray(jax.vmap(jax.jacfwd(sample_res))(q, y))  # (N, m, n)
-    m = Jq.shape[1]
-    blocks = np.einsum("nij,nkj->nik", Jq, Jq) * sigma_actuator**2 + np.eye(m)[None] / w[None, :, None] ** 2
-    Jw_blocks = Jw.reshape(len(data), m, -1)
-    middle = np.einsum("nia,nij,njb->ab", Jw_blocks * w[None, :, None], blocks, Jw_blocks * w[None, :, None])
-    return Hinv @ middle @ Hinv
+        Jq = np.asarray(jax.vmap(jax.jacfwd(sample_res))(q, y))  # (N, m, n_inputs)
+        Sy = np.einsum("nij,nkj->nik", Jq, Jq) * s_q**2 + np.eye(m)[None] * var_m[None, None, :]
+    else:
+        Sy = np.broadcast_to(np.eye(m) * var_m[None, :], (n, m, m))
+    B = np.einsum("nia,nij,njb->ab", WJ, Sy, WJ)
+    return Ainv @ B @ Ainv
 
 
 def similarity(A, B) -> float:
@@ -258,12 +265,14 @@ def _sharded_chunk(devices, cfg):
 
 def monte_carlo(robot, a_true, q, device="position", noise=None, runs: int = 100, known=(), seed: int = 0,
                 chunk: int = 64, devices=None, sigma_position=1e-3, sigma_orientation=1e-3,
-                max_steps: int = 50, solver: str = "lm", outlier_k: float = 5.0) -> MonteCarloResult:
+                max_steps: int = 50, solver: str = "lm", outlier_k: float = 5.0, start: str = "reference") -> MonteCarloResult:
     """`runs` noisy data sets of the robot with parameters a_true at joint readings q, each
     identified, as vmapped compiled LM solves in chunks of `chunk` (seed 004 §4.3.1).
 
-    The estimated set and the prior are those of the noise-free identification; every run starts
-    there with a fixed iteration budget and reports its own convergence flag. `devices`: the JAX
+    The estimated set and the prior are those of the noise-free identification. Every run starts
+    from the noise-free estimate (`start="reference"`: the spread due to noise, in a few
+    iterations) or from the nominal robot (`start="nominal"`: the whole identification, about 20
+    LM iterations), with a fixed iteration budget and its own convergence flag. `devices`: the JAX
     devices to shard the runs over (default: all local devices; [] or one device: no sharding).
     """
     dev = _as_device(device)
@@ -273,8 +282,7 @@ def monte_carlo(robot, a_true, q, device="position", noise=None, runs: int = 100
     ref = identify(robot, clean, known=known, sigma_position=sigma_position, sigma_orientation=sigma_orientation,
                    solver=solver)
     idx = ref.info["estimated_index"]
-    cov_lin = linear_covariance(ref, clean, sigma_position=max(s_p, 1e-300), sigma_orientation=max(s_r, 1e-300),
-                                sigma_actuator=s_q) if (s_p or s_r or s_q) else np.zeros((len(idx), len(idx)))
+    cov_lin = linear_covariance(ref, clean, {"position": s_p, "orientation": s_r, "actuator": s_q})
     if devices is None:
         devices = jax.devices()
     devices = list(devices) if devices is not None and len(devices) > 1 else None  # [] or one device: no sharding
@@ -282,11 +290,18 @@ def monte_carlo(robot, a_true, q, device="position", noise=None, runs: int = 100
     chunk = max(n_dev, (chunk // n_dev) * n_dev)
     mask = np.zeros(len(ref.names))
     mask[idx] = 1.0
+    if start not in ("reference", "nominal"):
+        raise ValueError(f"start must be 'reference' or 'nominal', got {start!r}")
     a_prior = jnp.asarray(ref.a_full)
-    # the prior keeps the noise-free frames but the robot at nominal, as identify would start
-    a_prior = a_prior.at[idx].set(jnp.concatenate([robot.nominal, dev.nominal])[idx])
+    if start == "nominal":  # keep the noise-free frames but put the robot back at nominal, as identify starts
+        a_prior = a_prior.at[idx].set(jnp.concatenate([robot.nominal, dev.nominal])[idx])
+    w = residual_weights(dev, sigma_position, sigma_orientation)
+    # O(1) starting residual for LM (see identify.make_args): the noise term is ~1 when the sigmas
+    # are the noise levels; from the nominal start the model error dominates
+    r0 = residuals(robot, dev, a_prior, jnp.asarray(clean.q), jnp.asarray(clean.y), w)
+    w = w / jnp.maximum(1.0, jnp.sqrt(jnp.mean(r0**2)))
     args = dict(a_ref=a_prior, mask=jnp.asarray(mask), q=jnp.asarray(clean.q), y=jnp.asarray(clean.y),
-                w=residual_weights(dev, sigma_position, sigma_orientation), mu=jnp.float64(0.0),
+                w=w, mu=jnp.float64(0.0),
                 x_scale=jnp.asarray([1.0 if u in ("gain", "scale") else 0.01 for u in tuple(robot.units) + tuple(dev.units)]),
                 lb=jnp.full(len(mask), -jnp.inf), ub=jnp.full(len(mask), jnp.inf))
     cfg = dict(robot=robot, device=dev, solver=solver, max_steps=max_steps, rtol=1e-8, atol=1e-10)
