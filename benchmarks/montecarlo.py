@@ -40,13 +40,13 @@ def _noise(device, s, s_q=0.0):
     return {"position": s, "orientation": s if device == "pose" else 0.0, "actuator": s_q}
 
 
-def speed(name, runs):
+def speed(name, runs, solver=None):
     device, known, n, s = CASES[name]
     rb = jc.robots.get(name)
     a = jc.perturb(rb, 0.003, seed=1)
     q = jc.random_configurations(rb, n, seed=2, margin=0.05)
     mc = un.monte_carlo(rb, a, q, device, noise=_noise(device, s), runs=runs, known=known, chunk=runs,
-                        sigma_position=s, sigma_orientation=s, devices=[])
+                        sigma_position=s, sigma_orientation=s, devices=[], solver=solver)
     # the same solve (same solver, start, weights), one noise draw at a time, in a Python loop
     ref = jc.identify(rb, jc.simulate(rb, a, q, device), known=known, sigma_position=s, sigma_orientation=s)
     dev = jc.make_device(device)

@@ -26,7 +26,7 @@ from jaxcal.forward import forward
 from jaxcal.kin.model import Robot
 from jaxcal.measure.devices import Device
 
-SOLVERS = ("lm", "lm_normal", "gn", "dogleg", "bfgs")
+SOLVERS = ("lm", "lm_normal", "gn", "gn_normal", "dogleg", "bfgs")
 
 
 def _solver(name: str, rtol: float, atol: float):
@@ -36,6 +36,8 @@ def _solver(name: str, rtol: float, atol: float):
         return optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
     if name == "gn":
         return optx.GaussNewton(rtol=rtol, atol=atol)
+    if name == "gn_normal":
+        return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
     if name == "dogleg":
         return optx.Dogleg(rtol=rtol, atol=atol)
     if name == "bfgs":
@@ -284,7 +286,7 @@ def identify(
     known: device parameter prefixes or names treated as known ("dev", "tool", "dev.x", ...).
     a0, device_params: starting/prior values (default nominal).
     solver: "lm" (default; QR linear solves), "lm_normal" (LM on the normal equations by Cholesky),
-    "gn", "dogleg" or "bfgs" (optimistix).
+    "gn", "gn_normal", "dogleg" or "bfgs" (optimistix).
     base: estimate only the base set of the free columns (seed 001 App. III); others stay at a0.
     bias: mu, or a decreasing sequence of mu, for the term mu ||(x - x0)/scale||^2 (seed 004 eq 3.12).
     bounds: {name: (low, high)} enforced by a penalty (seed 004 §3.3).
