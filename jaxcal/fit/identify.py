@@ -110,6 +110,11 @@ def _executable(fn, cfg, x0, args):
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
+def _rms_residual(robot, device, a_full, q, y, w):
+    return jnp.sqrt(jnp.mean(residuals(robot, device, a_full, q, y, w) ** 2))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
 def _errors(robot, device, a_full, q, y):
     """Unweighted per-sample (position, orientation) errors."""
     r = residuals(robot, device, a_full, q, y, residual_weights(device, 1.0, 1.0))
@@ -335,8 +340,7 @@ def identify(
         trust region took 4 to 34 iterations on the same problem depending on that scale."""
         mask = np.zeros(len(names))
         mask[np.asarray(idx, int)] = 1.0
-        r0 = residuals(robot, device, ref, q, y, w)
-        w_solve = w / jnp.maximum(jnp.sqrt(jnp.mean(r0**2)), 1e-12)
+        w_solve = w / jnp.maximum(_rms_residual(robot, device, ref, q, y, w), 1e-12)
         return dict(a_ref=ref, mask=jnp.asarray(mask), q=q, y=y, w=w_solve, mu=jnp.float64(mu), x_scale=x_scale,
                     lb=jnp.asarray(lb), ub=jnp.asarray(ub))
 
@@ -402,7 +406,9 @@ def identify(
     run_s = time.perf_counter() - t_fit - (compile_s - compile_before)
     hist = _history(robot, device, a_frames, make_args(est_idx, 0.0, a_frames), solver, max_steps, rtol, atol) if history else None
 
-    a_full = jnp.where(make_args(est_idx, 0.0, a_frames)["mask"] > 0, x, a_frames)
+    est_mask = np.zeros(len(names), bool)
+    est_mask[est_idx] = True
+    a_full = jnp.where(jnp.asarray(est_mask), x, a_frames)
     after_p, after_o = rms_of(a_full)
     J = np.asarray(_jacobian(robot, device, a_full, q, y, w))
     r_final = np.asarray(residuals(robot, device, a_full, q, y, w)).reshape(-1)
