@@ -1,0 +1,47 @@
+"""GA fitness functions (seed 000 eq 5.2-5.6).
+
+`pose_fitness`: sum over measurements of w1 ||P_m - P_0||_2 + w2 ||R_m - R_0||_2, with the
+spectral norm of the rotation difference. For two rotations, R_m - R_0 = R_0 (R_0^T R_m - I) and
+R_0^T R_m - I is normal with eigenvalues 0, e^{+-i theta} - 1, so ||R_m - R_0||_2 = 2 sin(theta/2)
+= sqrt(3 - tr(R_0^T R_m)) exactly (checked against the SVD in the tests).
+`residual_fitness`: sum of squares of any jc weighted residual (jaxcal.fit.identify.residuals),
+so the GA works with every device and robot jc models.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from jaxcal.fit.identify import residuals
+from jaxcal.forward import forward
+
+
+def rotation_spectral_distance(Ra, Rb):
+    """||Ra - Rb||_2 for rotation matrices: sqrt(3 - tr(Rb^T Ra)) (= 2 sin(theta/2))."""
+    tr = jnp.sum(Ra * Rb, axis=(-2, -1))
+    return jnp.sqrt(jnp.maximum(3.0 - tr, 0.0))
+
+
+def full_vector(dg, a0, free_idx):
+    """a = g + dg on the free entries (seed eq 5.5-5.6); a0 is the full robot+device vector."""
+    return a0.at[free_idx].add(dg)
+
+
+def pose_fitness(robot, device, a_full, q, y, w1=1.0, w2=1.0):
+    """Seed eq 5.3-5.4 for position ("position") or pose ("pose") readings y."""
+    nr = robot.n_params
+    tips = forward(robot, a_full[:nr], q)
+    pred = jax.vmap(device.read, (0, None))(tips, a_full[nr:])
+    if device.kind == "position":
+        return w1 * jnp.sum(jnp.linalg.norm(pred - y, axis=-1))
+    if device.kind != "pose":
+        raise ValueError(f"pose fitness needs a 'position' or 'pose' device, got {device.kind!r}; use fitness='residual'")
+    dp = jnp.linalg.norm(pred[:, :3, 3] - y[:, :3, 3], axis=-1)
+    dR = rotation_spectral_distance(y[:, :3, :3], pred[:, :3, :3])
+    return jnp.sum(w1 * dp + w2 * dR)
+
+
+def residual_fitness(robot, device, a_full, q, y, w):
+    """Sum of squared weighted jc residuals (any device)."""
+    return jnp.sum(residuals(robot, device, a_full, q, y, w) ** 2)
