@@ -1,9 +1,10 @@
 """Identification: datasets, simulation, base parameters and the solvers."""
 
+from jaxcal.fit import uncertainty
 from jaxcal.fit.base import BaseSet, base_set, regrouping_relations
 from jaxcal.fit.data import DataError, Dataset
 from jaxcal.fit.identify import FitResult, identify, residual_weights, residuals
 from jaxcal.fit.simulate import perturb, random_configurations, simulate
 
 __all__ = ["BaseSet", "DataError", "Dataset", "FitResult", "base_set", "identify", "perturb",
-           "random_configurations", "regrouping_relations", "residual_weights", "residuals", "simulate"]
+           "random_configurations", "regrouping_relations", "residual_weights", "residuals", "simulate", "uncertainty"]

@@ -46,6 +46,16 @@ class Device:
     reading_shape: tuple[int, ...]
     targets: np.ndarray | None = None  # three-point target: sphere centres in the tip frame (3, 3)
 
+    def _key(self):
+        t = None if self.targets is None else np.asarray(self.targets).tobytes()
+        return (self.kind, self.names, np.asarray(self.nominal_np).tobytes(), np.asarray(self.free_mask).tobytes(), t)
+
+    def __hash__(self):  # by value, so equal devices share compiled solvers (static jit argument)
+        return hash(self._key())
+
+    def __eq__(self, other):
+        return isinstance(other, Device) and self._key() == other._key()
+
     @property
     def nominal(self):
         return jnp.asarray(self.nominal_np)
