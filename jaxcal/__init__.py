@@ -11,6 +11,7 @@ from jaxcal import (
            measure,
            robots,
 )
+from jaxcal.fit.identifiable import identifiable
 from jaxcal.fit import DataError, Dataset, FitResult, identify, perturb, random_configurations, simulate
 from jaxcal.forward import forward
 from jaxcal.kin import Pose, Robot
@@ -18,5 +19,5 @@ from jaxcal.measure import make_device
 from jaxcal.robots.io import load_robot, save_robot
 
 __version__ = "0.1.0"
-__all__ = ["DataError", "Dataset", "FitResult", "Pose", "Robot", "forward", "identify", "make_device",
+__all__ = ["DataError", "Dataset", "FitResult", "Pose", "Robot", "forward", "identifiable", "identify", "make_device",
            "load_robot", "measure", "perturb", "random_configurations", "robots", "save_robot", "simulate"]
