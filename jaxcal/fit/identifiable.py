@@ -124,3 +124,69 @@ def gecaro_priority(robot: Robot, overrides: dict) -> np.ndarray:
     for k, v in overrides.items():
         p[robot.index(k)] = v
     return p
+
+
+@dataclasses.dataclass
+class Calibration:
+    """Outcome of `calibrate`: parameters, method unknowns, residual RMS per iteration."""
+
+    a: np.ndarray
+    c: np.ndarray
+    estimated: tuple[str, ...]
+    iterations: int
+    rms: np.ndarray  # RMS of the residual before each iteration and at the end
+    converged: bool
+    seconds: float
+
+
+def calibrate(robot: Robot, points, a0=None, c0=None, priority=None, include_gains=True, solver="gecaro",
+              max_iter: int = 30, tol: float = 1e-14, n_configs: int = 40, seed: int = 0) -> Calibration:
+    """Identify the base parameters of a method from generated/measured `points` (a `Points`).
+
+    solver "gecaro": iterated linearised least squares on W_b (seed 001 eq 9-10: dx = -W_b^+ r,
+    W_b and r updated each iteration); "lm": optimistix Levenberg-Marquardt on the same base
+    columns. Parameters outside the base set stay at a0. c0: start for the plane coefficients
+    (unknown-plane methods; default the points' plane). The base set comes from `identifiable`
+    at a0 (n_configs generated points, seed): measured points satisfy the constraint only for
+    the true robot, so a W built on them at a0 would over-count (seed 001 §3.2, App. III)."""
+    import optimistix as optx
+
+    from jaxcal.fit.methods import stacked_residual
+
+    method = points.method
+    t0 = time.perf_counter()
+    a0 = np.asarray(robot.nominal_np if a0 is None else a0, float)
+    c0 = np.asarray(points.plane if c0 is None else c0, float)
+    nr = robot.n_params
+    Qi, Qj, Y = jnp.asarray(points.Qi), jnp.asarray(points.Qj), jnp.asarray(points.Y)
+    x = np.concatenate([a0, c0])
+    ident = identifiable(robot, method, n_configs=n_configs, seed=seed, priority=priority,
+                         include_gains=include_gains, a=a0, plane=c0 if method in PLANE_METHODS else None)
+    idx = np.sort(ident.basis.independent)
+    res = lambda x: stacked_residual(robot, method, x[:nr], x[nr:], Qi, Qj, Y)  # noqa: E731
+    rms = [float(np.sqrt(np.mean(np.asarray(res(jnp.asarray(x))) ** 2)))]
+    converged, it = False, 0
+    if solver == "gecaro":
+        for it in range(1, max_iter + 1):
+            xj = jnp.asarray(x)
+            r = np.asarray(res(xj))
+            Wb = np.asarray(observation_matrix(robot, method, xj[:nr], xj[nr:], Qi, Qj, Y))[:, idx]
+            dx = -np.linalg.lstsq(Wb, r, rcond=None)[0]
+            x[idx] += dx
+            rms.append(float(np.sqrt(np.mean(np.asarray(res(jnp.asarray(x))) ** 2))))
+            if np.linalg.norm(dx) < tol * (1 + np.linalg.norm(x[idx])) or rms[-1] < 1e-15:
+                converged = True
+                break
+    elif solver == "lm":
+        base = jnp.asarray(x)
+        fn = lambda xb, _: res(base.at[idx].set(xb))  # noqa: E731
+        sol = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=1e-12, atol=1e-15), jnp.asarray(x[idx]),
+                                 max_steps=200, throw=False)
+        x[idx] = np.asarray(sol.value)
+        it, converged = int(sol.stats["num_steps"]), bool(sol.result == optx.RESULTS.successful)
+        rms.append(float(np.sqrt(np.mean(np.asarray(res(jnp.asarray(x))) ** 2))))
+    else:
+        raise ValueError(f"unknown solver {solver!r}; expected 'gecaro' or 'lm'")
+    names = ident.all_names
+    return Calibration(x[:nr], x[nr:], tuple(names[i] for i in idx), it, np.array(rms), converged,
+                       time.perf_counter() - t0)
