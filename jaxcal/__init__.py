@@ -13,12 +13,13 @@ from jaxcal import (
 )
 from jaxcal import ga  # noqa: E402  (genetic algorithm)
 from jaxcal.fit import DataError, Dataset, FitResult, identify, perturb, random_configurations, simulate, uncertainty
+from jaxcal.fit.identifiable import identifiable
 from jaxcal.forward import forward
 from jaxcal.kin import Pose, Robot
 from jaxcal.measure import make_device
 from jaxcal.robots.io import load_robot, save_robot
 
 __version__ = "0.1.0"
-__all__ = ["DataError", "Dataset", "FitResult", "Pose", "Robot", "forward", "ga", "identify", "make_device",
+__all__ = ["DataError", "Dataset", "FitResult", "Pose", "Robot", "forward", "ga", "identifiable", "identify", "make_device",
            "load_robot", "measure", "perturb", "random_configurations", "robots", "save_robot", "simulate",
            "uncertainty"]
