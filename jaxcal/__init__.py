@@ -8,10 +8,10 @@
 
 from jaxcal import (
            _setup,  # noqa: F401  (float64 + compilation cache before anything traces)
+           ga,  # noqa: E402  (genetic algorithm)
            measure,
            robots,
 )
-from jaxcal import ga  # noqa: E402  (genetic algorithm)
 from jaxcal.fit import DataError, Dataset, FitResult, identify, perturb, random_configurations, simulate, uncertainty
 from jaxcal.fit.identifiable import identifiable
 from jaxcal.forward import forward
