@@ -15,8 +15,10 @@ s_1 / s_b, noise amplification index s_b^2 / s_1.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -139,6 +141,21 @@ class Calibration:
     seconds: float
 
 
+@functools.partial(jax.jit, static_argnames=("robot", "method", "nr", "max_steps"))
+def _lm_on_base(x, idx, Qi, Qj, Y, *, robot, method, nr, max_steps):
+    """optimistix LM on the base entries x[idx] (the others fixed); compiled once per robot/method/shapes."""
+    import optimistix as optx
+
+    from jaxcal.fit.methods import stacked_residual
+
+    def fn(xb, _):
+        xf = x.at[idx].set(xb)
+        return stacked_residual(robot, method, xf[:nr], xf[nr:], Qi, Qj, Y)
+
+    sol = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=1e-12, atol=1e-15), x[idx], max_steps=max_steps, throw=False)
+    return sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+
+
 def calibrate(robot: Robot, points, a0=None, c0=None, priority=None, include_gains=True, solver="gecaro",
               max_iter: int = 30, tol: float = 1e-14, n_configs: int = 40, seed: int = 0) -> Calibration:
     """Identify the base parameters of a method from generated/measured `points` (a `Points`).
@@ -149,8 +166,6 @@ def calibrate(robot: Robot, points, a0=None, c0=None, priority=None, include_gai
     (unknown-plane methods; default the points' plane). The base set comes from `identifiable`
     at a0 (n_configs generated points, seed): measured points satisfy the constraint only for
     the true robot, so a W built on them at a0 would over-count (seed 001 §3.2, App. III)."""
-    import optimistix as optx
-
     from jaxcal.fit.methods import stacked_residual
 
     method = points.method
@@ -178,12 +193,9 @@ def calibrate(robot: Robot, points, a0=None, c0=None, priority=None, include_gai
                 converged = True
                 break
     elif solver == "lm":
-        base = jnp.asarray(x)
-        fn = lambda xb, _: res(base.at[idx].set(xb))  # noqa: E731
-        sol = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=1e-12, atol=1e-15), jnp.asarray(x[idx]),
-                                 max_steps=200, throw=False)
-        x[idx] = np.asarray(sol.value)
-        it, converged = int(sol.stats["num_steps"]), bool(sol.result == optx.RESULTS.successful)
+        xb, steps, ok = _lm_on_base(jnp.asarray(x), jnp.asarray(idx), Qi, Qj, Y, robot=robot, method=method, nr=nr, max_steps=200)
+        x[idx] = np.asarray(xb)
+        it, converged = int(steps), bool(ok)
         rms.append(float(np.sqrt(np.mean(np.asarray(res(jnp.asarray(x))) ** 2))))
     else:
         raise ValueError(f"unknown solver {solver!r}; expected 'gecaro' or 'lm'")
