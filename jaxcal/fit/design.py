@@ -47,7 +47,7 @@ class Design:
     q: np.ndarray
     chosen: np.ndarray
     index: str
-    score: float
+    score: float  # the maximised index ("condition": the inverse condition number s_b / s_1)
     indices: dict
     condition: float
     base_names: tuple[str, ...]
@@ -100,15 +100,11 @@ def configuration_blocks(robot: Robot, method_or_device, Q, a=None):
     device = _as_device(method_or_device)
     a_full = jnp.concatenate([robot.nominal if a is None else jnp.asarray(a, dtype=jnp.float64), device.nominal])
     w = residual_weights(device, 1.0, 1.0)
-    Y = jax.vmap(device.read, (0, None))(jax.vmap(lambda q: _tip(robot, a_full, q))(Q), a_full[robot.n_params:])
+    Y = jax.vmap(device.read, (0, None))(forward(robot, a_full[: robot.n_params], Q), a_full[robot.n_params:])
     blocks = jax.vmap(lambda q, y: jax.jacfwd(lambda x: residuals(robot, device, x, q[None], y[None], w)[0])(a_full))(Q, Y)
     names = tuple(robot.names) + tuple(device.names)
     priority = np.concatenate([np.asarray(robot.priority, float), device.priority])
     return np.asarray(blocks), names, priority
-
-
-def _tip(robot, a_full, q):
-    return forward(robot, a_full[: robot.n_params], q)
 
 
 def select_configurations(robot: Robot, method_or_device="position", n: int = 15, pool=None, index: str = "condition",
