@@ -25,7 +25,8 @@ def main(max_n: int = 1_000_000):
     fk = jax.jit(lambda a, q: forward_open(rb, a, q))
     one = jax.jit(lambda a, q: forward_open(rb, a, q))
     print(f"jax {jax.__version__}, devices {jax.devices()}")
-    print(f"{'N':>9} {'compile s':>10} {'jax ms':>10} {'numpy ms':>10} {'loop ms':>10} {'jax Mcfg/s':>11} {'jax/numpy':>10} {'jax/loop':>9}")
+    print(f"{'N':>9} {'compile s':>10} {'jax ms':>10} {'numpy ms':>10} {'loop ms':>10}"
+          f" {'jax Mcfg/s':>11} {'jax/numpy':>10} {'jax/loop':>9}")
     rows = []
     q_one = jnp.asarray(jc.random_configurations(rb, 1, seed=0)[0])
     one(a, q_one)[1].block_until_ready()
