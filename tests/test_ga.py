@@ -29,13 +29,14 @@ def test_rotation_spectral_distance_matches_svd(rng):
 
 
 def test_ga_reaches_lm_optimum_on_mrr1(mrr1_data):
-    """Seed Figure 6.9 setting: 50 individuals, 250 generations. The LM optimum of this noise-free
-    problem has fitness ~2e-8 (sum of norms over 8 poses); the GA must bring the fitness (eq 5.3-5.4, summed over 8 poses) from
-    ~8e-2 at nominal below 2e-4 (measured 6.5e-5) and predict held-out positions of the true robot
-    within 0.02 mm (measured 0.003 mm). The 18 PRY parameters are redundant, so parameters are not
-    compared one by one: the pose map is."""
+    """Seed Figure 6.9 setting: 50 individuals, 250 generations, 8 independent runs (vmapped). The LM
+    optimum of this noise-free problem has fitness ~2e-8 (sum of norms over 8 poses); the GA brings
+    the fitness (eq 5.3-5.4) from ~7e-2 at generation 0 to a median over runs below 2e-4 (over 100
+    runs: median 1.4e-4, 18% below 1e-4, best 4.6e-5, measured), and the best run predicts held-out
+    positions of the true robot within 0.02 mm. The 18 PRY parameters are redundant, so parameters
+    are not compared one by one: the pose map is."""
     rb, a_true, data = mrr1_data
-    ga = jc.ga.calibrate(rb, data, population=50, generations=250, seed=0)
+    ga = jc.ga.calibrate(rb, data, population=50, generations=250, seed=0, runs=8)
     lm = jc.identify(rb, data, known=("dev", "tool"))
     dev = data.device
     q, y = jnp.asarray(data.q), jnp.asarray(data.y)
@@ -43,10 +44,12 @@ def test_ga_reaches_lm_optimum_on_mrr1(mrr1_data):
     f_lm = float(pose_fitness(rb, dev, jnp.concatenate([lm.a, dev.nominal]), q, y))
     assert f_lm < 1e-7 and f_nominal > 0.05
     assert ga.a.shape == (rb.n_params,) and ga.best.shape == (250,) and ga.mean.shape == (250,)
-    assert ga.fitness < 2e-4 and ga.fitness - f_lm < 2e-4
-    assert np.all(np.diff(ga.best) <= 1e-15)  # elite children survive: best never gets worse
+    assert ga.runs_best.shape == (8, 250) and ga.runs_best[:, 0].min() > 0.02
+    assert np.median(ga.runs_fitness) < 2e-4 and ga.runs_fitness.min() - f_lm < 1e-4
+    assert np.all(np.diff(ga.runs_best, axis=1) <= 1e-15)  # elite children survive: best never gets worse
+    a_best = rb.nominal + ga.runs_dg[np.argmin(ga.runs_fitness)]  # all 18 robot parameters are free
     qt = jc.random_configurations(rb, 50, seed=9)
-    err = jnp.linalg.norm(jc.forward(rb, ga.a, qt).p - jc.forward(rb, jnp.asarray(a_true), qt).p, axis=-1)
+    err = jnp.linalg.norm(jc.forward(rb, a_best, qt).p - jc.forward(rb, jnp.asarray(a_true), qt).p, axis=-1)
     assert float(err.max()) < 2e-5
 
 

@@ -12,7 +12,7 @@ import numpy as np
 
 from jaxcal.fit.data import Dataset
 from jaxcal.fit.identify import residual_weights
-from jaxcal.ga import core
+from jaxcal.ga import batched, core
 from jaxcal.ga.fitness import full_vector, pose_fitness, residual_fitness
 from jaxcal.kin.model import Robot
 
@@ -39,8 +39,14 @@ class GAResult:
 def engine(robot: Robot, device, free_idx: tuple, fitness_kind: str, w1: float, w2: float,
            opts: core.GAOptions, chunk: int, seed_spread: float):
     """Compiled (init_seeded, init_random, chunk) functions, cached per static setting. The data
-    (q, y, a0, residual weights) is an argument, so a new dataset of the same shape reuses them."""
+    (q, y, a0, residual weights) is an argument, so a new dataset of the same shape reuses them.
+    The pose fitness of PRY chains is evaluated for the whole population at once (`batched`),
+    other robots/devices per individual, vmapped."""
     idx = jnp.asarray(free_idx)
+    whole_population = fitness_kind == "pose" and batched.supports(robot, device)
+
+    def population_fitness_of(pops, data):
+        return batched.population_fitness(robot, device, data["a0"], free_idx, pops, data["q"], data["y"], w1, w2)
 
     def fitness_of(dg, data):
         a_full = full_vector(dg, data["a0"], idx)
@@ -48,8 +54,10 @@ def engine(robot: Robot, device, free_idx: tuple, fitness_kind: str, w1: float, 
             return pose_fitness(robot, device, a_full, data["q"], data["y"], w1, w2)
         return residual_fitness(robot, device, a_full, data["q"], data["y"], data["w"])
 
-    init_seeded, init_random = core.make_init_fn(fitness_of, opts, seed_spread)
-    return init_seeded, init_random, core.make_chunk_fn(fitness_of, opts, chunk), jax.jit(jax.vmap(core.best_individual))
+    fn = population_fitness_of if whole_population else fitness_of
+    init_seeded, init_random = core.make_init_fn(fn, opts, seed_spread, batched=whole_population)
+    chunk_fn = core.make_chunk_fn(fn, opts, chunk, batched=whole_population)
+    return init_seeded, init_random, chunk_fn, jax.jit(jax.vmap(core.best_individual))
 
 
 _COMPILED = {}
