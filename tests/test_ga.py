@@ -94,10 +94,43 @@ def test_level1_monte_carlo_stops_by_eq_5_7(mrr1_data):
 
 def test_level2_monte_carlo_over_configuration_sets(mrr1_data):
     rb, a_true, _ = mrr1_data
-    res = mc.level2(rb, jnp.asarray(a_true), "pose", m=2, n_configurations=8, tol=0.0, batch=4, max_runs=4,
+    res = mc.level2(rb, jnp.asarray(a_true), "pose", m=3, n_configurations=8, tol=0.0, batch=4, max_runs=4,
                     population=20, generations=40, chunk=20)
-    assert res.means.shape == (2, 18) and len(res.level1) == 2
+    assert res.means.shape == (3, 18) and len(res.level1) == 3
     assert np.allclose(res.spread, res.means.std(0, ddof=1))
     assert all(r.runs == 4 and np.all(np.abs(r.dg) <= 0.005 + 1e-15) for r in res.level1)
     # different configuration sets give different level-1 means (the point of level 2)
     assert np.max(np.abs(res.means[0] - res.means[1])) > 0
+
+
+def test_level1_on_tip_positions_stops_where_the_redundant_parameters_do_not(mrr1_data):
+    """Eq 5.7 on MRR-1 GA output (50 x 250): the running mean of the 18 redundant PRY errors still
+    moves by more than 1e-5 per run after 20 runs (measured 5-9e-5 per run at 40-50 runs), while the
+    running mean of the tip positions predicted at 10 check configurations (identifiable) changes by
+    less than 1e-6 m after 8 runs (measured)."""
+    rb, _, data = mrr1_data
+    kw = dict(batch=10, max_runs=20, population=50, generations=250, seed=0)
+    params = mc.level1(rb, data, tol=1e-5, stop_on="parameters", **kw)
+    assert not params.stopped and params.runs == 20
+    tip = mc.level1(rb, data, tol=1e-6, stop_on="tip", **kw)
+    assert tip.stopped and tip.runs <= 10 and tip.samples.shape == (tip.runs, 30)
+    change = np.max(np.abs(np.diff(mc.running_means(tip.samples), axis=0)), axis=1)
+    assert change[-1] < 1e-6 and np.all(change[:-1] >= 1e-6)
+    assert np.array_equal(tip.dg, params.dg[: tip.runs])  # same GA runs, only the rule differs
+    with pytest.raises(ValueError, match="stop_on"):
+        mc.level1(rb, data, stop_on="angles", **kw)
+
+
+def test_level2_vmapped_over_configuration_sets_equals_the_loop(mrr1_data):
+    """Level 2 with every batch run for all sets in one vmapped call gives the runs, stopping
+    points and means of the loop over sets (same seeds)."""
+    rb, a_true, _ = mrr1_data
+    kw = dict(m=3, n_configurations=8, tol=2e-6, batch=4, max_runs=8, population=20, generations=40, chunk=20,
+              stop_on="tip")
+    vec = mc.level2(rb, jnp.asarray(a_true), "pose", vectorized=True, **kw)
+    loop = mc.level2(rb, jnp.asarray(a_true), "pose", vectorized=False, **kw)
+    assert [r.runs for r in vec.level1] == [r.runs for r in loop.level1]
+    for rv, rl in zip(vec.level1, loop.level1):
+        assert rv.stopped == rl.stopped
+        assert np.max(np.abs(rv.dg - rl.dg)) < 1e-12 and np.max(np.abs(rv.fitness - rl.fitness)) < 1e-12
+    assert np.max(np.abs(vec.means - loop.means)) < 1e-12

@@ -181,7 +181,7 @@ def best_individual(state):
 
 # XLA 0.10's CPU "ynn" fusions made the population-wide fitness 10-30x slower for populations of
 # 1000 and more (measured); the GA's compiled functions are built without them.
-def _jit(fn):
+def jit_cpu_options(fn):
     options = {"xla_cpu_experimental_ynn_fusion_type": ""} if jax.default_backend() == "cpu" else None
     return jax.jit(fn, compiler_options=options)
 
@@ -207,7 +207,7 @@ def make_chunk_fn(fitness_of, opts: GAOptions, n_generations: int, batched: bool
     def one(state, data, lb, ub):
         return run_chunk(state, functools.partial(fit, data=data), lb, ub, opts, n_generations)
 
-    return _jit(jax.vmap(one, (0, None, None, None)))
+    return jit_cpu_options(jax.vmap(one, (0, None, None, None)))
 
 
 def make_init_fn(fitness_of, opts: GAOptions, seed_spread=0.1, batched: bool = False):
@@ -220,4 +220,4 @@ def make_init_fn(fitness_of, opts: GAOptions, seed_spread=0.1, batched: bool = F
     def one_random(key, data, lb, ub):
         return init_state(key, functools.partial(fit, data=data), lb, ub, opts)
 
-    return _jit(jax.vmap(one, (0, None, None, None, None))), _jit(jax.vmap(one_random, (0, None, None, None)))
+    return jit_cpu_options(jax.vmap(one, (0, None, None, None, None))), jit_cpu_options(jax.vmap(one_random, (0, None, None, None)))
