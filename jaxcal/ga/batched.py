@@ -52,10 +52,6 @@ def _add(*terms):
     return out
 
 
-def _neg(x):
-    return -x if not isinstance(x, float) else (0.0 if x == 0.0 else -x)
-
-
 def mm(A, B):
     """A @ B for 3x3 matrices given as row tuples of entries."""
     return tuple(tuple(_add(*(_mul(A[i][k], B[k][j]) for k in range(3))) for j in range(3)) for i in range(3))

@@ -179,9 +179,9 @@ def best_individual(state):
     return pops.reshape(-1, pops.shape[-1])[i], flat_f[i]
 
 
-# XLA 0.10's CPU "ynn" fusions made the population-wide fitness 10-30x slower for populations of
-# 1000 and more (measured); the GA's compiled functions are built without them.
 def jit_cpu_options(fn):
+    """jax.jit without XLA's CPU "ynn" fusions: in XLA 0.10 its reduce fusion made the population-wide
+    fitness 10-30x slower for populations of 1000 and more (measured)."""
     options = {"xla_cpu_experimental_ynn_fusion_type": ""} if jax.default_backend() == "cpu" else None
     return jax.jit(fn, compiler_options=options)
 
