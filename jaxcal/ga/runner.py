@@ -12,7 +12,7 @@ import numpy as np
 
 from jaxcal.fit.data import Dataset
 from jaxcal.fit.identify import residual_weights
-from jaxcal.ga import core
+from jaxcal.ga import batched, core
 from jaxcal.ga.fitness import full_vector, pose_fitness, residual_fitness
 from jaxcal.kin.model import Robot
 
@@ -39,8 +39,14 @@ class GAResult:
 def engine(robot: Robot, device, free_idx: tuple, fitness_kind: str, w1: float, w2: float,
            opts: core.GAOptions, chunk: int, seed_spread: float):
     """Compiled (init_seeded, init_random, chunk) functions, cached per static setting. The data
-    (q, y, a0, residual weights) is an argument, so a new dataset of the same shape reuses them."""
+    (q, y, a0, residual weights) is an argument, so a new dataset of the same shape reuses them.
+    The pose fitness of PRY chains is evaluated for the whole population at once (`batched`),
+    other robots/devices per individual, vmapped."""
     idx = jnp.asarray(free_idx)
+    whole_population = fitness_kind == "pose" and batched.supports(robot, device)
+
+    def population_fitness_of(pops, data):
+        return batched.population_fitness(robot, device, data["a0"], free_idx, pops, data["q"], data["y"], w1, w2)
 
     def fitness_of(dg, data):
         a_full = full_vector(dg, data["a0"], idx)
@@ -48,8 +54,10 @@ def engine(robot: Robot, device, free_idx: tuple, fitness_kind: str, w1: float, 
             return pose_fitness(robot, device, a_full, data["q"], data["y"], w1, w2)
         return residual_fitness(robot, device, a_full, data["q"], data["y"], data["w"])
 
-    init_seeded, init_random = core.make_init_fn(fitness_of, opts, seed_spread)
-    return init_seeded, init_random, core.make_chunk_fn(fitness_of, opts, chunk), jax.jit(jax.vmap(core.best_individual))
+    fn = population_fitness_of if whole_population else fitness_of
+    init_seeded, init_random = core.make_init_fn(fn, opts, seed_spread, batched=whole_population)
+    chunk_fn = core.make_chunk_fn(fn, opts, chunk, batched=whole_population)
+    return init_seeded, init_random, chunk_fn, jax.jit(jax.vmap(core.best_individual))
 
 
 _COMPILED = {}
@@ -90,10 +98,29 @@ def _progress(total):
     return p, p.add_task("GA generations", total=total)
 
 
-def run(robot: Robot, data: Dataset, *, population=50, generations=250, seed=0, runs=1, free=None, bound=0.005,
-        fitness="pose", w1=1.0, w2=1.0, a0=None, device_params=None, initial=None, seed_spread=0.1,
-        sigma_position=1e-3, sigma_orientation=1e-3, chunk=25, progress=False, **options):
-    """Run `runs` independent GAs (vmapped) and return (GAResult, raw arrays). See `calibrate`."""
+@dataclasses.dataclass
+class Setup:
+    """Everything a GA run on one dataset needs: compiled-function factories and their arguments."""
+
+    opts: core.GAOptions
+    free_idx: tuple
+    names: tuple
+    payload: dict
+    lb: jnp.ndarray
+    ub: jnp.ndarray
+    a_full0: jnp.ndarray
+    start: jnp.ndarray | None  # seeded initial individual (errors dg), or None for a random population
+    init_seeded: object
+    init_random: object
+    chunk_fn: object
+    best_fn: object
+    chunk: int
+
+
+def prepare(robot: Robot, data: Dataset, *, population=50, generations=250, free=None, bound=0.005,
+            fitness="pose", w1=1.0, w2=1.0, a0=None, device_params=None, initial=None, seed_spread=0.1,
+            sigma_position=1e-3, sigma_orientation=1e-3, chunk=25, **options) -> Setup:
+    """Validate the arguments of `calibrate` and build the GA setup for `data`."""
     if fitness not in ("pose", "residual"):
         raise ValueError(f"fitness must be 'pose' or 'residual', got {fitness!r}")
     if data.q.shape[1] != robot.n_inputs:
@@ -110,20 +137,29 @@ def run(robot: Robot, data: Dataset, *, population=50, generations=250, seed=0, 
     lb, ub = _bounds(bound, len(free_idx))
     payload = dict(q=jnp.asarray(data.q), y=jnp.asarray(data.y), a0=a_full0,
                    w=residual_weights(device, sigma_position, sigma_orientation))
-    init_seeded, init_random, chunk_fn, best_fn = engine(robot, device, free_idx, fitness, float(w1), float(w2),
-                                                         opts, chunk, float(seed_spread))
+    fns = engine(robot, device, free_idx, fitness, float(w1), float(w2), opts, chunk, float(seed_spread))
+    start = None
+    if initial is not None:
+        fi = jnp.asarray(free_idx)
+        start = jnp.concatenate([jnp.asarray(initial, jnp.float64), d0])[fi] - a_full0[fi]
+    return Setup(opts, free_idx, names, payload, lb, ub, a_full0, start, *fns, chunk)
+
+
+def run(robot: Robot, data: Dataset, *, seed=0, runs=1, progress=False, **kw):
+    """Run `runs` independent GAs (vmapped) and return a GAResult. See `calibrate`."""
+    st = prepare(robot, data, **kw)
+    opts, payload, lb, ub, chunk = st.opts, st.payload, st.lb, st.ub, st.chunk
+    generations, population = opts.generations, opts.population
     keys = jax.random.split(jax.random.PRNGKey(seed), runs)
 
     t0 = time.perf_counter()
-    if initial is None:
-        init = _compiled(init_random, keys, payload, lb, ub)
+    if st.start is None:
+        init = _compiled(st.init_random, keys, payload, lb, ub)
         state = init(keys, payload, lb, ub)
     else:
-        fi = jnp.asarray(free_idx)
-        start = jnp.concatenate([jnp.asarray(initial, jnp.float64), d0])[fi] - a_full0[fi]
-        init = _compiled(init_seeded, keys, payload, lb, ub, start)
-        state = init(keys, payload, lb, ub, start)
-    chunk_c = _compiled(chunk_fn, state, payload, lb, ub)
+        init = _compiled(st.init_seeded, keys, payload, lb, ub, st.start)
+        state = init(keys, payload, lb, ub, st.start)
+    chunk_c = _compiled(st.chunk_fn, state, payload, lb, ub)
     jax.block_until_ready(state)
     compile_s = time.perf_counter() - t0
 
@@ -137,7 +173,7 @@ def run(robot: Robot, data: Dataset, *, population=50, generations=250, seed=0, 
         if bar:
             jax.block_until_ready(b)
             bar[0].advance(bar[1], chunk)
-    dg, cost = best_fn(state)
+    dg, cost = st.best_fn(state)
     jax.block_until_ready(dg)
     run_s = time.perf_counter() - t1
     if bar:
@@ -145,12 +181,12 @@ def run(robot: Robot, data: Dataset, *, population=50, generations=250, seed=0, 
 
     best = np.concatenate([np.asarray(b) for b in bests], axis=1)
     mean = np.concatenate([np.asarray(m) for m in means], axis=1)
-    a_best = np.asarray(full_vector(dg[0], a_full0, jnp.asarray(free_idx)))
+    a_best = np.asarray(full_vector(dg[0], st.a_full0, jnp.asarray(st.free_idx)))
     nr = robot.n_params
     evals = runs * population * opts.subpopulations * (generations + 1)
     return GAResult(
         a=jnp.asarray(a_best[:nr]), device_params=jnp.asarray(a_best[nr:]), fitness=float(cost[0]),
-        best=best[0], mean=mean[0], free=tuple(names[i] for i in free_idx), dg=np.asarray(dg[0]),
+        best=best[0], mean=mean[0], free=tuple(st.names[i] for i in st.free_idx), dg=np.asarray(dg[0]),
         runs_dg=np.asarray(dg), runs_fitness=np.asarray(cost), runs_best=best, options=opts,
         timings={"compile_s": compile_s, "run_s": run_s, "evaluations": evals,
                  "evaluations_per_s": evals / run_s, "generations_per_s": runs * generations / run_s},

@@ -64,3 +64,83 @@ def plot_errors_before_after(before, after, path: str, unit: str = "mm", title: 
     ax.legend(fontsize=8)
     ax.grid(True, axis="y", which="both", alpha=0.3)
     return save_atomic(fig, path)
+
+
+def plot_ga_history(best, mean, path: str, title: str = "GA fitness per generation"):
+    """Best and mean fitness per generation (seed 000 Figure 6.9), log scale."""
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    g = np.arange(1, len(best) + 1)
+    ax.semilogy(g, np.asarray(mean), color="tab:blue", lw=1.2, label=f"mean (final {mean[-1]:.3g})")
+    ax.semilogy(g, np.asarray(best), color="black", lw=1.8, label=f"best (final {best[-1]:.3g})")
+    ax.set_xlabel("generation")
+    ax.set_ylabel("fitness  sum ||P_m - P_0|| + ||R_m - R_0||_2")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    return save_atomic(fig, path)
+
+
+def plot_ga_population_study(curves: dict, path: str, title: str = "GA: population and generations"):
+    """Best fitness per generation for several (population, generations) settings (seed 000 Figure 6.10).
+    curves: label -> (G,) best fitness (e.g. the median over runs)."""
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for label, best in curves.items():
+        best = np.asarray(best)
+        ax.semilogy(np.arange(1, len(best) + 1), best, lw=1.5, label=f"{label}: final {best[-1]:.3g}")
+    ax.set_xlabel("generation")
+    ax.set_ylabel("best fitness (median over runs)")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    return save_atomic(fig, path)
+
+
+def plot_monte_carlo_level1(running_mean, changes: dict, tols: dict, path: str, unit_scale: float = 1e3,
+                            title: str = "Monte Carlo level 1"):
+    """(a) running means of every identified error over the GA runs (seed 000 Figure 6.11);
+    (b) the eq 5.7 change of the running mean per run for each stopping quantity, with its tolerance."""
+    rm = np.asarray(running_mean) * unit_scale
+    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4))
+    runs = np.arange(1, rm.shape[0] + 1)
+    a.set_prop_cycle(color=plt.cm.tab20(np.linspace(0, 1, 20)))
+    a.plot(runs, rm, lw=1)
+    a.set_xlabel("GA runs k")
+    a.set_ylabel("running mean of dg (mm / mrad)")
+    a.set_title("(a) running mean of each parameter error")
+    a.grid(True, alpha=0.3)
+    for (label, change), color in zip(changes.items(), ("tab:red", "tab:green", "tab:blue")):
+        change = np.asarray(change)
+        b.semilogy(np.arange(2, len(change) + 2), change, "o-", ms=3, color=color, label=label)
+        b.axhline(tols[label], color=color, ls="--", lw=1, label=f"tolerance L1 = {tols[label]:g}")
+    b.set_xlabel("GA runs k")
+    b.set_ylabel("max |mean_k - mean_(k-1)|  (eq 5.7)")
+    b.set_title("(b) change of the running mean")
+    b.grid(True, which="both", alpha=0.3)
+    b.legend(fontsize=8)
+    fig.suptitle(title)
+    return save_atomic(fig, path)
+
+
+def plot_monte_carlo_level2(means, names, tip_error, path: str, unit_scale: float = 1e3, title: str = "Monte Carlo level 2"):
+    """(a) level-1 mean of each identified error per random configuration set (seed 000 Figure 6.12);
+    (b) per set, the error of the tip positions predicted by the mean-parameter robot at check configurations."""
+    means = np.asarray(means) * unit_scale
+    sets = np.arange(1, means.shape[0] + 1)
+    fig, (a, b) = plt.subplots(1, 2, figsize=(13, 4.5), gridspec_kw={"width_ratios": [3, 2], "wspace": 0.7})
+    a.set_prop_cycle(color=plt.cm.tab20(np.linspace(0, 1, 20)))
+    for i, name in enumerate(names):
+        a.plot(sets, means[:, i], "o-", ms=3, lw=1, label=name)
+    a.set_xlabel("configuration set")
+    a.set_ylabel("level-1 mean of dg (mm / mrad)")
+    a.set_title("(a) parameter means across configuration sets")
+    a.grid(True, alpha=0.3)
+    a.set_xticks(sets)
+    a.legend(fontsize=7, ncol=2, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    b.bar(sets, np.asarray(tip_error) * unit_scale, color="tab:green")
+    b.set_xticks(sets)
+    b.set_xlabel("configuration set")
+    b.set_ylabel("max error, mean predicted tip (mm)")
+    b.set_title("(b) predicted tip positions vs truth")
+    b.grid(True, axis="y", alpha=0.3)
+    fig.suptitle(title)
+    return save_atomic(fig, path)
