@@ -21,8 +21,9 @@ unchanged, with their licence, under `jaxcal/robots/data/real/` (see README.md t
 Settings for `calibration_free` / `cross_validate` (always with the unknown device frame and
 marker fitted too): "frames" (nothing of the robot: the fair "before"), "offsets" (joint
 offsets), "full" (every geometric parameter; `identify` estimates the base set), "prior"
-(every geometric parameter with the bias term mu ||(a - a0)/0.01||^2 of seed 004 eq 3.12, mu
-chosen by inner cross-validation on the training folds only).
+(every geometric parameter with the bias term mu ||(a - a0)/0.01||^2 of seed 004 eq 3.12; mu and,
+for pose data, the orientation weight chosen by inner cross-validation on the training folds only); "full+compliance" and
+"prior+compliance" add a joint compliance under gravity per revolute joint (`with_compliance`).
 """
 
 from __future__ import annotations
@@ -67,7 +68,8 @@ _SPECS = {
 # frame; TIAGo's orientation comes from a triad of ~0.1 m, so 1 mm of point noise is ~10 mrad.
 SIGMA_ORIENTATION = {"talos": 1e-3, "ur10": 1e-3, "tiago": 1e-2}
 MU_GRID = tuple(10.0 ** k for k in range(-3, 3))
-SETTINGS = ("frames", "offsets", "full", "prior")
+SIGMA_FACTORS = (0.1, 0.3, 1.0)  # orientation weights tried by the inner CV of "prior" (pose data)
+SETTINGS = ("frames", "offsets", "full", "prior", "full+compliance", "prior+compliance")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,6 +155,7 @@ def load(name: str) -> RealData:
         pts = [read_columns(path, (f"x{k}", f"y{k}", f"z{k}")) for k in (1, 2, 3)]
         R = triad_frame(*pts)
         local = np.stack([np.einsum("nji,nj->ni", R, p - pts[0]) for p in pts], axis=1)  # (N, 3 points, 3)
+        extra["points"] = np.stack(pts, axis=1)  # (N, 3 points, 3), m
         extra["triad"] = local.mean(axis=0)
         extra["triad_spread_m"] = float(np.max(np.abs(local - extra["triad"])))
         data = Dataset(q=q, R=R, p=pts[0], device="pose", joint_names=spec["joints"], source=path)
@@ -169,6 +172,8 @@ def _compliant_robot(name: str):
 def with_compliance(real: RealData) -> RealData:
     """The dataset on its robot with joint compliance under gravity (`with_gravity_compliance`):
     the joint inputs gain the nominal gravity torques. The compliant robot is cached per dataset."""
+    if "compliance_of" in real.robot.extras:
+        return real
     robot = _compliant_robot(real.name)
     d = real.data
     data = Dataset(q=compliance_inputs(real.robot, d.q), y=d.y, device=d.device, covariates=d.covariates,
@@ -216,24 +221,40 @@ def sample_errors(fit, real: RealData, idx):
     return pe * 1e3, (None if oe is None else np.degrees(oe))
 
 
+def point_errors(fit, real: RealData, idx) -> np.ndarray:
+    """TIAGo: 3-D error (mm) of each of the three marker points, (len(idx), 3), from the fitted
+    marker pose applied to the triad's mean shape."""
+    idx = np.asarray(idx)
+    T = fit.predict(real.data.q[idx])
+    pred = np.einsum("nij,kj->nki", T[:, :3, :3], real.extra["triad"]) + T[:, None, :3, 3]
+    return np.linalg.norm(pred - real.extra["points"][idx], axis=-1) * 1e3
+
+
 def _rms(x):
     return float(np.sqrt(np.mean(np.square(x))))
 
 
-def choose_mu(real: RealData, train, grid=MU_GRID, inner_folds: int = 4, seed: int = 1, **fit_options) -> float:
-    """The mu of the grid with the smallest inner cross-validated position RMS, using the training
-    samples `train` only (the outer held-out fold is never seen)."""
+def choose_prior(real: RealData, train, grid=MU_GRID, inner_folds: int = 4, seed: int = 1, **fit_options) -> dict:
+    """mu (and, for pose data, the orientation weight sigma_orientation among SIGMA_FACTORS x the
+    a-priori value) with the smallest inner cross-validated position RMS, using the training
+    samples `train` only: the outer held-out fold is never seen."""
     train = np.asarray(train)
     inner = fold_indices(len(train), inner_folds, seed)
+    if "sigma_orientation" in fit_options or real.data.device.kind != "pose":
+        sigmas = [fit_options.pop("sigma_orientation", SIGMA_ORIENTATION[real.name])]
+    else:
+        sigmas = [SIGMA_ORIENTATION[real.name] * f for f in SIGMA_FACTORS]
+    candidates = [(mu, so) for so in sigmas for mu in grid]
     scores = []
-    for mu in grid:
+    for mu, so in candidates:
         errs = []
         for part in inner:
             held = train[part]
-            fit = fit_on(real, "prior", np.setdiff1d(train, held), mu, **fit_options)
+            fit = fit_on(real, "prior", np.setdiff1d(train, held), mu, sigma_orientation=so, **fit_options)
             errs.append(sample_errors(fit, real, held)[0])
         scores.append(_rms(np.concatenate(errs)))
-    return float(grid[int(np.argmin(scores))])
+    mu, so = candidates[int(np.argmin(scores))]
+    return {"mu": float(mu), "sigma_orientation": float(so)}
 
 
 def cross_validate(real: RealData, setting: str, folds: int = 5, seed: int = 0, grid=MU_GRID, **fit_options) -> dict:
@@ -241,14 +262,20 @@ def cross_validate(real: RealData, setting: str, folds: int = 5, seed: int = 0, 
     over all held-out samples (position mm; orientation deg for pose data), the parameters estimated,
     the mu chosen per fold ("prior"), and the time (compile apart from run). `fit_options` go to
     `identify` (e.g. sigma_orientation)."""
+    if setting.endswith("+compliance"):
+        real, setting = with_compliance(real), setting.removesuffix("+compliance")
     n = len(real.data)
-    held_pos, held_ori, train_pos, train_ori, n_est, mus = [], [], [], [], [], []
+    held_pos, held_ori, train_pos, train_ori, held_pts, n_est, mus = [], [], [], [], [], [], []
     compile_s = run_s = 0.0
     t0 = time.perf_counter()
     for held in fold_indices(n, folds, seed):
         train = np.setdiff1d(np.arange(n), held)
-        mu = choose_mu(real, train, grid, **fit_options) if setting == "prior" else None
-        fit = fit_on(real, setting, train, mu, **fit_options)
+        options, mu = dict(fit_options), None
+        if setting == "prior":
+            chosen = choose_prior(real, train, grid, **fit_options)
+            mu, options["sigma_orientation"] = chosen["mu"], chosen["sigma_orientation"]
+            mus.append(chosen)
+        fit = fit_on(real, setting, train, mu, **options)
         compile_s += fit.timings["compile_s"]
         run_s += fit.timings["run_s"]
         pe, oe = sample_errors(fit, real, held)
@@ -258,13 +285,17 @@ def cross_validate(real: RealData, setting: str, folds: int = 5, seed: int = 0, 
         if oe is not None:
             held_ori.append(oe)
             train_ori.append(_rms(toe))
+        if "points" in real.extra:
+            held_pts.append(point_errors(fit, real, held))
         n_est.append(len(fit.estimated))
-        mus.append(mu)
-    out = {"setting": setting, "folds": folds, "samples": n, "parameters_estimated": int(np.median(n_est)),
+    label = setting + ("+compliance" if "compliance_of" in real.robot.extras else "")
+    out = {"setting": label, "folds": folds, "samples": n, "parameters_estimated": int(np.median(n_est)),
            "train_rms_mm": float(np.mean(train_pos)), "heldout_rms_mm": _rms(np.concatenate(held_pos)),
            "compile_s": compile_s, "fit_run_s_per_fold": run_s / folds, "wall_s": time.perf_counter() - t0}
     if held_ori:
         out.update(train_rms_deg=float(np.mean(train_ori)), heldout_rms_deg=_rms(np.concatenate(held_ori)))
+    if held_pts:
+        out["heldout_rms_3points_mm"] = _rms(np.concatenate(held_pts))
     if setting == "prior":
-        out["mu_per_fold"] = mus
+        out["chosen_per_fold"] = mus
     return out
