@@ -15,6 +15,12 @@ class OutputError(ValueError):
     """An output path that must not be written (e.g. it would overwrite an input)."""
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 @contextlib.contextmanager
 def atomic_path(path: str, suffix: str = ".tmp"):
     """Yield a temp path beside `path`; on success it replaces `path`, on error it is removed."""
@@ -24,6 +30,7 @@ def atomic_path(path: str, suffix: str = ".tmp"):
     os.close(fd)
     try:
         yield tmp
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp creates 0600; give the file the usual permissions
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
