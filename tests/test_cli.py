@@ -1,0 +1,115 @@
+"""`jaxcal` subcommands, called in-process through `jaxcal.cli.main`."""
+
+import importlib.util
+import json
+import os
+
+import numpy as np
+import pytest
+
+import jaxcal as jc
+from jaxcal.cli import main
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    """40 MRR-1 position samples in mm / deg, written by `jaxcal simulate`, and the truth."""
+    folder = tmp_path_factory.mktemp("sim")
+    csv, truth = str(folder / "mrr1.csv"), str(folder / "truth.json")
+    rc = main(["simulate", "mrr1", "--out", csv, "--truth", truth, "--n", "40", "--length-unit", "mm", "--angle-unit", "deg",
+               "--perturb-mm", "2", "--noise-mm", "0.01", "--temperature", "--seed", "3"])
+    assert rc == 0
+    return folder, csv, json.load(open(truth))
+
+
+def test_simulate_writes_the_stated_units(simulated):
+    folder, csv, truth = simulated
+    data = jc.Dataset.from_csv(csv)
+    assert data.units == {"length": "mm", "angle": "deg"} and len(data) == 40 and "temperature" in data.covariates
+    rb = jc.robots.get("mrr1")
+    # the readings are the perturbed robot's tool positions (device frame = base, marker at the flange) plus 0.01 mm noise
+    clean = jc.simulate(rb, np.asarray(truth["a_true"]), data.q)
+    assert np.sqrt(np.mean((data.y - clean.y) ** 2)) < 3e-5
+
+
+def test_calibrate_builtin_robot(simulated, capsys):
+    folder, csv, truth = simulated
+    out = folder / "out"
+    rc = main(["calibrate", "mrr1", csv, "--out", str(out), "--sigma-position", "1e-5", "-q"])
+    assert rc == 0
+    res = json.load(open(out / "results.json"))
+    assert res["samples"] == {"total": 40, "train": 30, "heldout": 10}
+    held = res["rms"]["heldout"]["position_mm"]
+    assert held["after"] < 0.05 < 0.5 < held["before"], held  # 2 mm errors, 0.01 mm noise
+    for name in res["files"]:
+        assert (out / name).stat().st_size > 0
+    assert not [f for f in os.listdir(out) if f.startswith(".")], "staging files left behind"
+    # standard errors are reported for every estimated parameter
+    est = [p for p in res["parameters"] if p["status"] == "estimated"]
+    assert est and all(p["std_error"] is not None and p["std_error"] > 0 for p in est)
+    report = (out / "report.md").read_text()
+    for section in ("Errors before and after", "Identifiability", "Parameters", "errors_per_pose.png", "error_map.png"):
+        assert section in report
+    # the calibrated YAML reproduces the fitted model
+    rb = jc.robots.get("mrr1")
+    cal = jc.load_robot(str(out / "mrr1_calibrated.yaml"))
+    a_fit = np.array([p["identified"] for p in res["parameters"][: rb.n_params]])
+    q = jc.random_configurations(rb, 5, seed=9)
+    np.testing.assert_allclose(jc.forward(cal, cal.nominal, q).p, jc.forward(rb, a_fit, q).p, atol=1e-12)
+    assert "held-out (10 samples)" in capsys.readouterr().out
+
+
+def test_config_file_with_command_line_override(simulated):
+    from jaxcal.config import load_config
+
+    folder, csv, _ = simulated
+    cfg = folder / "job.toml"
+    cfg.write_text('robot = "mrr1"\ndata = "mrr1.csv"\nout = "cfg-out"\nholdout = 0.25\nsigma_position = 1e-5\n'
+                   '[units]\nlength = "mm"\nangle = "deg"\n')
+    assert main(["calibrate", "--config", str(cfg), "--seed", "1", "-q"]) == 0
+    res = json.load(open(folder / "cfg-out" / "results.json"))  # "out" is relative to the config file
+    assert res["seed"] == 1 and res["holdout"] == 0.25 and res["samples"]["heldout"] == 10
+    assert res["rms"]["heldout"]["position_mm"]["after"] < 0.05
+    yml = folder / "job.yaml"
+    yml.write_text("robot: mrr1\ndata: mrr1.csv\nout: cfg-out\nholdout: 0.25\nsigma_position: 1.0e-5\n"
+                   "units: {length: mm, angle: deg}\n")
+    assert load_config(str(yml)) == load_config(str(cfg))
+
+
+def test_identifiable_matches_the_library(tmp_path, capsys):
+    path = tmp_path / "ident.json"
+    assert main(["identifiable", "mrr1", "--method", "location", "--json", str(path), "-q"]) == 0
+    got = json.load(open(path))
+    ref = jc.identifiable(jc.robots.get("mrr1"), "location")
+    assert got["count"] == ref.count and tuple(got["names"]) == ref.names
+    assert f"{ref.count} identifiable parameters" in capsys.readouterr().out
+
+
+def test_bench_quick(tmp_path):
+    path = tmp_path / "bench.json"
+    assert main(["bench", "--robot", "mrr1", "--n-fk", "200", "--n-fit", "30", "--repeats", "2", "--json", str(path), "-q"]) == 0
+    res = json.load(open(path))
+    assert res["fk"]["configs_per_s"] > 0 and res["fk"]["compile_s"] > 0
+    assert res["identify"]["rms_after_mm"] < 0.05  # 1e-5 m noise, 1 mm errors
+    assert main(["bench", "--script", "no_such_benchmark", "-q"]) == 2
+
+
+def test_diagnose(simulated, capsys):
+    folder, csv, _ = simulated
+    out = folder / "diag"
+    rc = main(["diagnose", "mrr1", csv, "--out", str(out), "-q"])
+    if importlib.util.find_spec("jaxcal.gap") is None:
+        assert rc == 1 and "jaxcal.gap" in capsys.readouterr().err
+        assert not out.exists()
+    else:
+        assert rc == 0
+        d = json.load(open(out / "diagnosis.json"))
+        assert d
+
+
+def test_help_lists_every_subcommand(capsys):
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = capsys.readouterr().out
+    for cmd in ("calibrate", "identifiable", "simulate", "diagnose", "bench", "demo"):
+        assert cmd in text
