@@ -17,6 +17,7 @@ All three are plug-ins of the one tree evaluator in `jaxcal.kin.model`:
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import pry_to_matrix, rot_x, rot_y, rot_z
@@ -76,3 +77,37 @@ def mcpc_frame(row, joint_type: int, qv) -> Pose:
     R = V @ rot_z(a3)
     p = V @ jnp.stack([d1, d2, d3])
     return Pose(R, p)
+
+
+# URDF joint (issue 8): row = (x, y, z, roll, pitch, yaw, offset); kind = (joint type, axis).
+URDF_ROW = ("x", "y", "z", "roll", "pitch", "yaw", "offset")
+URDF_TYPES = ("revolute", "prismatic", "fixed")
+
+
+def rpy_to_matrix(rpy):
+    """URDF origin rotation: fixed-axis X-Y-Z, R = Rz(yaw) Ry(pitch) Rx(roll) (not the seed's PRY)."""
+    return rot_z(rpy[2]) @ rot_y(rpy[1]) @ rot_x(rpy[0])
+
+
+def axis_rotation(axis, angle):
+    """Rotation by `angle` about the constant unit vector `axis` (Rodrigues' formula)."""
+    x, y, z = (float(c) for c in axis)
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return jnp.eye(3) + jnp.sin(angle) * K + (1.0 - jnp.cos(angle)) * (K @ K)
+
+
+def urdf_joint(row, kind, qv) -> Pose:
+    """URDF joint transform T = Trans(xyz) Rot(rpy) Motion(axis, q + offset).
+
+    kind = (type, axis) with type "revolute" (continuous too), "prismatic" or "fixed" and axis
+    a unit 3-tuple; the offset shifts the joint zero (angle or length).
+    """
+    joint_type, axis = kind
+    R0 = rpy_to_matrix(row[3:6])
+    if joint_type == "revolute":
+        return Pose(R0 @ axis_rotation(axis, qv[0] + row[6]), row[0:3])
+    if joint_type == "prismatic":
+        return Pose(R0, row[0:3] + R0 @ (np.asarray(axis, float) * (qv[0] + row[6])))
+    if joint_type == "fixed":
+        return Pose(R0, row[0:3])
+    raise ValueError(f"unknown URDF joint type {joint_type!r}; expected one of {URDF_TYPES}")

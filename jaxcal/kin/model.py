@@ -32,8 +32,8 @@ class Body:
     """Static description of one body/frame of the tree."""
 
     name: str
-    convention: str  # "pry" | "mdh" | "mcpc"
-    kind: Any  # PRY joint kind (str), MDH sigma (int) or MCPC type (int)
+    convention: str  # "pry" | "mdh" | "mcpc" | "urdf"
+    kind: Any  # PRY joint kind (str), MDH sigma (int), MCPC type (int) or URDF (type, axis)
     parent: int  # index of the parent body, -1 for the base frame
     rows: tuple[int, ...]  # indices of this body's parameter row in `a`; -1 = constant zero
     inputs: tuple[int, ...] = ()  # indices into the joint-variable vector
@@ -125,6 +125,8 @@ def local_transform(body: Body, row, qv) -> Pose:
         return cv.mdh_frame(row, body.kind, qv)
     if body.convention == "mcpc":
         return cv.mcpc_frame(row, body.kind, qv)
+    if body.convention == "urdf":
+        return cv.urdf_joint(row, body.kind, qv)
     raise ValueError(f"unknown convention {body.convention!r}")
 
 

@@ -171,7 +171,12 @@ def robot_to_dict(robot, a=None) -> dict:
 
 
 def save_robot(robot, path: str, a=None) -> str:
-    """Write the robot (with parameters a) as YAML atomically (temp file, then rename)."""
+    """Write the robot (with parameters a) as YAML atomically (temp file, then rename); a path ending
+    in ".urdf" writes the calibrated URDF of a URDF-loaded robot (`jaxcal.robots.urdf.save_urdf`)."""
+    if str(path).lower().endswith(".urdf"):
+        from jaxcal.robots.urdf import save_urdf
+
+        return save_urdf(robot, path, a)
     text = yaml.safe_dump(robot_to_dict(robot, a), sort_keys=False, default_flow_style=None)
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)

@@ -1,0 +1,376 @@
+"""URDF in and out: the chain between two links as a calibratable `Robot`, and back.
+
+Import (`load_urdf(path, base=, tip=)`): the file is parsed by `urdf_parser_py` (the ROS
+project's parser); the joints from `base` to `tip` become bodies of the "urdf" convention
+(`jaxcal.kin.conventions.urdf_joint`): T = Trans(xyz) Rot(rpy) Motion(axis, q + offset), with
+URDF's fixed-axis X-Y-Z rpy (R = Rz(yaw) Ry(pitch) Rx(roll)). Each moving joint carries seven
+parameters `<joint>.x .y .z .roll .pitch .yaw .offset`; fixed joints are folded into the origin
+of the next moving joint, and fixed joints after the last moving joint become one fixed body
+named after the last of them (six parameters, no offset). The table is redundant on purpose
+(rpy and offset, the last joint and the marker); `jc.identify` estimates its base set.
+Continuous joints are revolute joints without limits. Inertials of the chain's links are kept in
+`robot.extras["inertia"]` (per body: mass, centre of mass and inertia about it, in the body frame).
+
+Export (`save_urdf(robot, path, a)`): the source URDF is rewritten with only the chain's joint
+origins changed, so that the file's forward kinematics equals the robot's at `a`. Joint offsets
+are folded into the joint origin (revolute: origin rotation times Rot(axis, offset); prismatic:
+origin shifted along the axis), so q = 0 in the written file is the calibrated zero; pinocchio,
+ROS and MoveIt read plain origins, while `<calibration>` is ignored by their kinematics.
+Fixed joints folded at import keep their origins; the moving joint after them absorbs the change.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+
+import numpy as np
+
+from jaxcal.kin import conventions as cv
+from jaxcal.kin.model import Body, Robot
+from jaxcal.robots.io import RobotFileError
+
+_TYPE = {"revolute": "revolute", "continuous": "revolute", "prismatic": "prismatic", "fixed": "fixed"}
+
+
+class URDFError(RobotFileError):
+    """A URDF that cannot be turned into a robot; the message names the file and the element."""
+
+
+# -- homogeneous transforms (numpy, used at the edges only) ---------------------------------------
+def _rot(axis: int, angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    i, j = [(1, 2), (2, 0), (0, 1)][axis]
+    R = np.eye(3)
+    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+    return R
+
+
+def rpy_matrix(rpy) -> np.ndarray:
+    """R = Rz(yaw) Ry(pitch) Rx(roll) (URDF origin rpy)."""
+    r, p, y = (float(v) for v in rpy)
+    return _rot(2, y) @ _rot(1, p) @ _rot(0, r)
+
+
+def matrix_rpy(R) -> np.ndarray:
+    """Inverse of `rpy_matrix` with |pitch| <= pi/2; at pitch = +-pi/2 the yaw is set to 0."""
+    R = np.asarray(R, float)
+    pitch = np.arctan2(-R[2, 0], np.hypot(R[0, 0], R[1, 0]))
+    if np.hypot(R[0, 0], R[1, 0]) < 1e-12:
+        roll = np.arctan2(np.sign(-R[2, 0]) * R[0, 1], R[1, 1])
+        return np.array([roll, pitch, 0.0])
+    return np.array([np.arctan2(R[2, 1], R[2, 2]), pitch, np.arctan2(R[1, 0], R[0, 0])])
+
+
+def origin_matrix(xyz, rpy) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = rpy_matrix(rpy), np.asarray(xyz, float)
+    return T
+
+
+def _inv(T):
+    Ti = np.eye(4)
+    Ti[:3, :3] = T[:3, :3].T
+    Ti[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+    return Ti
+
+
+# -- parsing --------------------------------------------------------------------------------
+@contextlib.contextmanager
+def _quiet_parser():
+    """urdf_parser_py prints a line per tag it does not model (gazebo, transmission, ...)."""
+    import urdf_parser_py.xml_reflection.core as core
+
+    saved = core.on_error
+    core.on_error = lambda message: None
+    try:
+        yield
+    finally:
+        core.on_error = saved
+
+
+def parse_urdf(text: str, source: str = "<string>"):
+    """The urdf_parser_py model of a URDF text; malformed XML and invalid elements raise URDFError."""
+    from lxml import etree
+    from urdf_parser_py.urdf import URDF
+    from urdf_parser_py.xml_reflection.core import ParseError
+
+    try:
+        etree.fromstring(text.encode())
+    except etree.XMLSyntaxError as exc:
+        raise URDFError(f"{source}: malformed XML: {exc}") from None
+    try:
+        with _quiet_parser():
+            model = URDF.from_xml_string(text)
+    except ParseError as exc:
+        raise URDFError(f"{source}: {' '.join(str(exc).split())}") from None
+    except (AssertionError, ValueError, TypeError, AttributeError) as exc:
+        raise URDFError(f"{source}: invalid URDF: {exc}") from None
+    links = {ln.name for ln in model.links}
+    for j in model.joints:
+        for role, link in (("parent", j.parent), ("child", j.child)):
+            if link not in links:
+                raise URDFError(f"{source}: <joint name='{j.name}'>: {role} link {link!r} is not defined by any <link>")
+    return model
+
+
+def _chain(model, base, tip, source):
+    """Joints from link `base` to link `tip`, in order."""
+    links = {ln.name for ln in model.links}
+    for role, link in (("base", base), ("tip", tip)):
+        if link not in links:
+            raise URDFError(f"{source}: {role} link {link!r}: no <link name='{link}'> in the file")
+    parent_joint = {j.child: j for j in model.joints}
+    chain, link = [], tip
+    while link != base:
+        if link not in parent_joint:
+            raise URDFError(f"{source}: broken chain: walking up from tip link {tip!r} reached <link name='{link}'>, "
+                            f"which has no parent joint, without meeting base link {base!r}")
+        joint = parent_joint[link]
+        chain.append(joint)
+        link = joint.parent
+    if not chain:
+        raise URDFError(f"{source}: base and tip are the same link {base!r}; no joints between them")
+    return chain[::-1]
+
+
+def _joint_type(joint, source):
+    if joint.type not in _TYPE:
+        raise URDFError(f"{source}: <joint name='{joint.name}'>: unsupported joint type {joint.type!r}; "
+                        f"expected one of {sorted(_TYPE)}")
+    if joint.mimic is not None:
+        raise URDFError(f"{source}: <joint name='{joint.name}'>: <mimic> joints are not supported in a calibrated chain")
+    return _TYPE[joint.type]
+
+
+def _axis(joint, source):
+    axis = np.array(joint.axis if joint.axis is not None else [1.0, 0.0, 0.0], float)
+    n = np.linalg.norm(axis)
+    if not np.isfinite(n) or n < 1e-12:
+        raise URDFError(f"{source}: <joint name='{joint.name}'>/<axis>: axis must be a non-zero vector, got {axis.tolist()}")
+    return tuple(float(v) for v in axis / n)
+
+
+def _origin(joint):
+    o = joint.origin
+    xyz = [0.0, 0.0, 0.0] if o is None or o.xyz is None else o.xyz
+    rpy = [0.0, 0.0, 0.0] if o is None or o.rpy is None else o.rpy
+    return origin_matrix(xyz, rpy)
+
+
+def _limits(joint, kind):
+    lim = joint.limit
+    if joint.type == "continuous" or lim is None or lim.lower is None or lim.upper is None or lim.lower >= lim.upper:
+        return (-np.pi, np.pi) if kind == "revolute" else (-1.0, 1.0)
+    return float(lim.lower), float(lim.upper)
+
+
+def _priority(field, value, first_or_last):
+    """Seed 001 §4 order: offsets 5, non-zero lengths 4, angles off multiples of pi/2 3, end frames 2."""
+    if field == "offset":
+        return 5.0
+    if field in ("x", "y", "z"):
+        if abs(value) > 1e-12:
+            return 4.0
+    else:
+        r = np.mod(value, np.pi / 2)
+        if min(r, np.pi / 2 - r) > 1e-9:
+            return 3.0
+    return 2.0 if first_or_last else 1.0
+
+
+def _link_inertial(link):
+    """(mass, com (3,), inertia about the com in the link frame (3, 3)) of one <link>, or None."""
+    ine = link.inertial
+    if ine is None or ine.mass is None:
+        return None
+    T = _origin(ine)
+    i = ine.inertia
+    I = np.zeros((3, 3)) if i is None else np.array([[i.ixx, i.ixy, i.ixz], [i.ixy, i.iyy, i.iyz], [i.ixz, i.iyz, i.izz]], float)
+    return float(ine.mass), T[:3, 3], T[:3, :3] @ I @ T[:3, :3].T
+
+
+def _merge_inertia(parts):
+    """Mass, centre of mass and inertia about it of rigidly joined parts [(name, T_body_link, mass, com, I)]."""
+    mass = sum(m for _, _, m, _, _ in parts)
+    if mass <= 0:
+        return {"links": tuple(p[0] for p in parts), "mass": 0.0, "com": np.zeros(3), "inertia": np.zeros((3, 3))}
+    coms = [T[:3, :3] @ c + T[:3, 3] for _, T, _, c, _ in parts]
+    com = sum(m * c for (_, _, m, _, _), c in zip(parts, coms)) / mass
+    inertia = np.zeros((3, 3))
+    for (_, T, m, _, I), c in zip(parts, coms):
+        d = c - com
+        inertia += T[:3, :3] @ I @ T[:3, :3].T + m * (d @ d * np.eye(3) - np.outer(d, d))
+    return {"links": tuple(p[0] for p in parts), "mass": mass, "com": com, "inertia": inertia}
+
+
+def robot_from_urdf(text: str, base: str | None = None, tip: str | None = None, source: str = "<string>",
+                    name: str | None = None) -> Robot:
+    """Robot of the chain from link `base` (default: the root link) to link `tip` (default: the
+    only leaf link) of a URDF text."""
+    model = parse_urdf(text, source)
+    base = model.get_root() if base is None else base
+    if tip is None:
+        parents = {j.parent for j in model.joints}
+        leaves = sorted(ln.name for ln in model.links if ln.name not in parents)
+        if len(leaves) != 1:
+            raise URDFError(f"{source}: give tip= (the tool link); the file has {len(leaves)} leaf links, e.g. {leaves[:5]}")
+        tip = leaves[0]
+    chain = _chain(model, base, tip, source)
+    link_by_name = {ln.name: ln for ln in model.links}
+
+    groups, pending = [], []  # each group: (fixed joints folded before, the joint that carries the origin)
+    for joint in chain:
+        kind = _joint_type(joint, source)
+        if kind == "fixed":
+            pending.append(joint)
+        else:
+            groups.append((pending, joint))
+            pending = []
+    if pending:
+        groups.append((pending[:-1], pending[-1]))
+
+    names, values, units, priority, bodies, joint_names, lo, hi = [], [], [], [], [], [], [], []
+    body_meta, inertia = [], []
+    for b, (folded, joint) in enumerate(groups):
+        kind = _joint_type(joint, source)
+        F = np.eye(4)
+        for f in folded:
+            F = F @ _origin(f)
+        T = F @ _origin(joint)
+        geometry = list(T[:3, 3]) + list(matrix_rpy(T[:3, :3]))
+        fields = cv.URDF_ROW if kind != "fixed" else cv.URDF_ROW[:6]
+        rows = []
+        for field, value in zip(fields, geometry + [0.0]):
+            rows.append(len(names))
+            names.append(f"{joint.name}.{field}")
+            values.append(float(value))
+            units.append("length" if field in ("x", "y", "z") or (field == "offset" and kind == "prismatic") else "angle")
+            priority.append(_priority(field, value, b in (0, len(groups) - 1)))
+        if kind == "fixed":
+            rows.append(-1)
+        inputs = ()
+        if kind != "fixed":
+            inputs = (len(joint_names),)
+            joint_names.append(joint.name)
+            lo_j, hi_j = _limits(joint, kind)
+            lo.append(lo_j)
+            hi.append(hi_j)
+        axis = _axis(joint, source) if kind != "fixed" else (0.0, 0.0, 1.0)
+        bodies.append(Body(joint.name, "urdf", (kind, axis), b - 1, tuple(rows), inputs))
+        body_meta.append({"joint": joint.name, "folded": tuple(f.name for f in folded), "type": joint.type})
+        inertia.append(_body_inertia(chain, joint, link_by_name, kind))
+
+    lo, hi = np.array(lo), np.array(hi)
+    home = np.clip(np.zeros(len(lo)), lo, hi)
+    return Robot(
+        name=name or model.name or "urdf", bodies=tuple(bodies), names=tuple(names), nominal_np=np.array(values),
+        units=tuple(units), free_mask=np.ones(len(names), bool), priority=np.array(priority),
+        joint_names=tuple(joint_names), home_np=home, q_min=lo, q_max=hi, tip=len(bodies) - 1,
+        extras={"urdf_text": text, "urdf_source": source, "base_link": base, "tip_link": tip,
+                "urdf_bodies": tuple(body_meta), "inertia": tuple(inertia)},
+    )
+
+
+def _body_inertia(chain, joint, link_by_name, kind):
+    """Inertia of the links moving rigidly with a moving joint's child link, in that link's frame.
+    The fixed body that ends a chain carries none (its links move with the last moving body)."""
+    if kind == "fixed":
+        return _merge_inertia([])
+    start = chain.index(joint)
+    parts, T = [], np.eye(4)
+    for k in range(start, len(chain)):
+        if k > start:
+            if _TYPE[chain[k].type] != "fixed":
+                break
+            T = T @ _origin(chain[k])
+        data = _link_inertial(link_by_name[chain[k].child])
+        if data is not None:
+            parts.append((chain[k].child, T.copy()) + data)
+    return _merge_inertia(parts)
+
+
+def load_urdf(path: str, base: str | None = None, tip: str | None = None, name: str | None = None) -> Robot:
+    """Robot of the chain from link `base` to link `tip` of a URDF file (see module docstring)."""
+    path = str(path)
+    if not os.path.exists(path):
+        raise URDFError(f"{path}: no such file")
+    with open(path, encoding="utf-8") as fh:
+        text = fh.read()
+    robot = robot_from_urdf(text, base, tip, source=path, name=name)
+    robot.extras["urdf_path"] = os.path.realpath(path)
+    return robot
+
+
+# -- export ---------------------------------------------------------------------------------
+def _calibrated_origin(robot: Robot, body: Body, a_ext) -> np.ndarray:
+    """The body's origin at parameters a with the joint offset folded in (module docstring)."""
+    row = np.array([a_ext[i] for i in body.rows], float)
+    T = origin_matrix(row[0:3], row[3:6])
+    joint_type, axis = body.kind
+    if joint_type == "revolute":
+        T[:3, :3] = T[:3, :3] @ np.asarray(cv.axis_rotation(axis, row[6]))
+    elif joint_type == "prismatic":
+        T[:3, 3] = T[:3, 3] + T[:3, :3] @ (np.asarray(axis) * row[6])
+    return T
+
+
+def urdf_text(robot: Robot, a=None) -> str:
+    """The source URDF with the chain's joint origins set to the robot's geometry at `a`."""
+    from lxml import etree
+
+    if "urdf_text" not in robot.extras:
+        raise URDFError(f"robot {robot.name!r} was not loaded from a URDF; only URDF-loaded robots can be exported")
+    a = np.asarray(robot.nominal_np if a is None else a, float)
+    if a.shape != (robot.n_params,):
+        raise ValueError(f"parameters must have shape ({robot.n_params},), got {a.shape}")
+    a_ext = np.append(a, 0.0)
+    root = etree.fromstring(robot.extras["urdf_text"].encode())
+    joints = {j.get("name"): j for j in root.findall("joint")}
+
+    def origin_of(name):
+        o = joints[name].find("origin")
+        get = (lambda key: [float(v) for v in (o.get(key) or "0 0 0").split()]) if o is not None else (lambda key: [0.0] * 3)
+        return origin_matrix(get("xyz"), get("rpy"))
+
+    for body, meta in zip(robot.bodies, robot.extras["urdf_bodies"]):
+        F = np.eye(4)
+        for f in meta["folded"]:
+            F = F @ origin_of(f)
+        T = _inv(F) @ _calibrated_origin(robot, body, a_ext)
+        elem = joints[meta["joint"]]
+        origin = elem.find("origin")
+        if origin is None:
+            origin = etree.SubElement(elem, "origin")
+        origin.set("xyz", " ".join(f"{v:.17g}" for v in T[:3, 3]))
+        origin.set("rpy", " ".join(f"{v:.17g}" for v in matrix_rpy(T[:3, :3])))
+    note = etree.Comment(f" calibrated by jaxcal: origins of the joints {', '.join(m['joint'] for m in robot.extras['urdf_bodies'])} "
+                         "carry the identified geometry; joint offsets are folded into them ")
+    root.insert(0, note)
+    return etree.tostring(root, xml_declaration=True, encoding="utf-8").decode()
+
+
+def save_urdf(robot: Robot, path: str, a=None) -> str:
+    """Write the calibrated URDF atomically (temp file in the same folder, then rename); never over
+    the URDF the robot was loaded from."""
+    path = str(path)
+    src = robot.extras.get("urdf_path")
+    if src is not None and os.path.realpath(path) == src:
+        raise URDFError(f"{path}: refusing to overwrite the input URDF; choose another output path")
+    text = urdf_text(robot, a)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=folder, suffix=".urdf.tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+    return path
+
+
+__all__ = ["URDFError", "load_urdf", "matrix_rpy", "parse_urdf", "robot_from_urdf", "rpy_matrix", "save_urdf", "urdf_text"]
