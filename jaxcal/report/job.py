@@ -101,6 +101,8 @@ def run_job(robot, data, holdout: float = 0.25, seed: int = 0, **identify_kw) ->
         "rms": rms, "converged": bool(fit.converged), "iterations": int(fit.iterations),
         "timings_s": {k: float(v) for k, v in fit.timings.items()},
         "identifiability": identifiability_summary(fit), "parameters": parameter_rows(fit),
+        "device_params": {"calibrated": dict(zip(fit.device.names, np.asarray(fit.device_params).tolist())),
+                          "nominal_robot": dict(zip(nominal.device.names, np.asarray(nominal.device_params).tolist()))},
         "per_sample_errors_mm": {split: {"before": None if v[0][0] is None else v[0][0].tolist(),
                                          "after": None if v[1][0] is None else v[1][0].tolist()} for split, v in errs.items()},
     }
