@@ -78,13 +78,14 @@ def parameter_rows(fit) -> list[dict]:
     return rows
 
 
-def run_job(robot, data, holdout: float = 0.25, seed: int = 0, **identify_kw) -> JobResult:
+def run_job(robot, data, holdout: float = 0.25, seed: int = 0, history: bool = True, **identify_kw) -> JobResult:
     """Fit `robot` on a random (1 - holdout) share of `data`; evaluate both the calibrated and the
-    nominal model (device frame / marker fitted) on the training and held-out samples."""
+    nominal model (device frame / marker fitted) on the training and held-out samples.
+    history: record the cost per solver step for the convergence plot (one more compile)."""
     train, test = data.split(1.0 - holdout, seed) if holdout > 0 else (data, None)
     if test is not None and len(test) == 0:
         test = None
-    fit = identify(robot, train, history=True, **identify_kw)
+    fit = identify(robot, train, history=history, **identify_kw)
     nominal = identify(robot, train, free=(), **{k: v for k, v in identify_kw.items() if k != "free"})
     errs = {"train": (_errors(nominal, train), _errors(fit, train))}
     if test is not None:
