@@ -13,6 +13,8 @@ import os
 import sys
 import time
 
+from jaxcal.fit.csvfile import prismatic_joints
+
 EXIT_BAD_INPUT = 2
 
 
@@ -110,7 +112,7 @@ def _calibrate(args) -> int:
                 robot = load_robot_arg(job["robot"], job.get("base"), job.get("tip"))
                 data = jc.Dataset.from_csv(job["data"], joints=job.get("joints") or robot.joint_names, device=job.get("device"),
                                            marker=job.get("marker"), length_unit=job.get("length_unit"),
-                                           angle_unit=job.get("angle_unit"))
+                                           angle_unit=job.get("angle_unit"), prismatic=prismatic_joints(robot))
             is_urdf = job["robot"].lower().endswith(".urdf")
             robot_file = f"{robot.name}_calibrated.{'urdf' if is_urdf else 'yaml'}"
             out = job["out"]
@@ -189,7 +191,7 @@ def _simulate(args) -> int:
         data = jc.simulate(robot, a_true, q, args.device, noise=noise, seed=args.seed + 2)
         if args.temperature:
             data.covariates["temperature"] = 20.0 + np.random.default_rng(args.seed).uniform(0, 5, len(data))
-        data.to_csv(args.out, length_unit=args.length_unit, angle_unit=args.angle_unit)
+        data.to_csv(args.out, length_unit=args.length_unit, angle_unit=args.angle_unit, prismatic=prismatic_joints(robot))
         if args.truth:
             write_json_atomic(args.truth, {"robot": robot.name, "names": robot.names, "a_true": np.asarray(a_true),
                                            "noise": noise, "seed": args.seed})
@@ -213,7 +215,7 @@ def _diagnose(args) -> int:
     try:
         robot = load_robot_arg(args.robot, args.base, args.tip)
         data = jc.Dataset.from_csv(args.data, joints=robot.joint_names, device=args.device, marker=args.marker,
-                                   length_unit=args.length_unit, angle_unit=args.angle_unit)
+                                   length_unit=args.length_unit, angle_unit=args.angle_unit, prismatic=prismatic_joints(robot))
         check_not_input(os.path.join(args.out, "diagnosis.json"), [args.robot, args.data])
         with _progress(not args.quiet) as prog, _stage(prog, f"diagnosing the sim-to-real gap of {robot.name}"):
             d = jc.gap.diagnose(robot, data)

@@ -55,14 +55,19 @@ def _pose_data(n=8):
 def test_pose_round_trip_in_mm_and_deg(tmp_path):
     rb, data = _pose_data()
     data.covariates["temperature"] = np.linspace(20, 25, len(data))
-    path = data.to_csv(tmp_path / "poses.csv", length_unit="mm", angle_unit="deg")
+    prismatic = jc.fit.csvfile.prismatic_joints(rb)
+    assert prismatic == ("j3",)
+    path = data.to_csv(tmp_path / "poses.csv", length_unit="mm", angle_unit="deg", prismatic=prismatic)
     assert open(path).readline().startswith("# units: length=mm, angle=deg")
-    back = jc.Dataset.from_csv(path)  # units from the header line
+    written = np.genfromtxt(path, delimiter=",", names=True, skip_header=1)
+    np.testing.assert_allclose(written["j3"], data.q[:, 2] * 1e3)  # the prismatic joint in mm
+    np.testing.assert_allclose(written["j1"], np.degrees(data.q[:, 0]))
+    back = jc.Dataset.from_csv(path, prismatic=prismatic)  # units from the header line
     assert back.units == {"length": "mm", "angle": "deg"} and back.device.kind == "pose"
     np.testing.assert_allclose(back.q, data.q, atol=1e-13)
     np.testing.assert_allclose(back.y, data.y, atol=1e-12)
     np.testing.assert_allclose(back.covariates["temperature"], data.covariates["temperature"])
-    position_only = jc.Dataset.from_csv(path, device="position")
+    position_only = jc.Dataset.from_csv(path, device="position", prismatic=prismatic)
     np.testing.assert_allclose(position_only.y, data.y[:, :3, 3], atol=1e-13)
     with pytest.raises(jc.DataError, match="header says length=mm but length_unit='m'"):
         jc.Dataset.from_csv(path, length_unit="m")
@@ -107,8 +112,8 @@ def test_unit_mistakes_are_detected(tmp_path):
     path = _position_csv(tmp_path, q_deg, p)
     with pytest.raises(jc.DataError, match=r"line \d+, column 'j(1|2)'.*degrees given as radians"):
         jc.Dataset.from_csv(path)
-    ok = jc.Dataset.from_csv(path, angle_unit="deg")
-    np.testing.assert_allclose(ok.q[:, :2], q[:, :2], atol=1e-12)
+    ok = jc.Dataset.from_csv(path, angle_unit="deg", prismatic=("j3",))  # j3 is a length (m), not an angle
+    np.testing.assert_allclose(ok.q, q, atol=1e-12)
     path = _position_csv(tmp_path, q, p * 1e3)
     with pytest.raises(jc.DataError, match="millimetres given as metres"):
         jc.Dataset.from_csv(path)

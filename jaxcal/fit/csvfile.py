@@ -1,7 +1,8 @@
 """CSV measurement files: column layout, units, unit-mistake checks, precise errors.
 
 Layout (see docs/file-formats.md): one header row, one row per sample.
-- joints: columns named after the robot's joints (or given with `joints=`);
+- joints: columns named after the robot's joints (or given with `joints=`); revolute joints in the
+  angle unit, prismatic joints (`prismatic=`) in the length unit;
 - position of marker k: `x, y, z` (one marker) or `xk, yk, zk` (FIGAROH: `x1, y1, z1, x2, ...`);
 - optional orientation of marker k: a rotation vector `phixk, phiyk, phizk` (FIGAROH), a unit
   quaternion `qwk, qxk, qyk, qzk`, or a rotation matrix `r11 .. r33` (single marker);
@@ -32,6 +33,17 @@ _UNITS = re.compile(r"\b(length|angle)\s*[=:]\s*([a-z]+)", re.IGNORECASE)
 MAX_POSITION_M = 20.0  # |p| beyond this in metres is taken for millimetres given as metres
 MIN_POSITION_MM = 5.0  # every |p| below this in millimetres looks like metres given as millimetres
 MAX_ANGLE_RAD = 2 * np.pi + 0.5  # |q| beyond this in radians is taken for degrees given as radians
+
+
+def prismatic_joints(robot) -> tuple[str, ...]:
+    """Names of the robot's prismatic joint inputs: their CSV values are lengths, not angles."""
+    out = []
+    for body in robot.bodies:
+        kind = body.kind[0] if isinstance(body.kind, tuple) else body.kind
+        is_prismatic = kind == "prismatic" or (body.convention in ("mdh", "mcpc") and kind == 1)
+        if is_prismatic and len(body.inputs) == 1:
+            out.append(robot.joint_names[body.inputs[0]])
+    return tuple(out)
 
 
 class DataError(ValueError):
@@ -233,17 +245,26 @@ def _rotations(kind, block, lines, path, angle_scale):
     return U @ Vt
 
 
-def check_joint_units(q, joints, lines, angle_unit, path):
+def joint_scale(joints, prismatic, length_unit, angle_unit) -> np.ndarray:
+    """Factor from the file's unit to SI per joint column: length unit for prismatic joints, angle unit otherwise."""
+    return np.array([LENGTH_SCALE[length_unit] if j in prismatic else ANGLE_SCALE[angle_unit] for j in joints])
+
+
+def check_joint_units(q, joints, lines, angle_unit, path, prismatic=()):
     """Joint values q in the stated unit. Degrees given as radians: |q| well beyond 2 pi is an
     error naming the column and line; radians given as degrees (every |q| below pi degrees) is a warning."""
     for j, name in enumerate(joints):
+        if name in prismatic:
+            continue
         col = np.abs(q[:, j])
         if angle_unit == "rad" and col.max() > MAX_ANGLE_RAD:
             i = int(np.argmax(col))
             raise DataError(f"{path}, line {lines[i]}, column {name!r}: {q[i, j]:.6g} rad is more than a full turn: "
                             "degrees given as radians (or millimetres for a prismatic joint)? "
                             "state the unit with angle_unit='deg' or a '# units: angle=deg' header line")
-    if angle_unit == "deg" and len(q) > 1 and np.abs(q).max() < np.pi and np.ptp(q, 0).max() > 0:
+    rev = [j for j, name in enumerate(joints) if name not in prismatic]
+    q = q[:, rev]
+    if angle_unit == "deg" and len(q) > 1 and q.size and np.abs(q).max() < np.pi and np.ptp(q, 0).max() > 0:
         warnings.warn(f"{path}: every joint value is below {np.pi:.3g} deg although the unit is deg: radians given as degrees?",
                       UnitWarning, stacklevel=3)
 
@@ -261,4 +282,5 @@ def check_length_units(p_si, lines, length_unit, path):
                       "unit is mm: metres given as millimetres?", UnitWarning, stacklevel=3)
 
 
-__all__ = ["DataError", "Layout", "Table", "UnitWarning", "find_layout", "read_table", "resolve_unit"]
+__all__ = ["DataError", "Layout", "Table", "UnitWarning", "find_layout", "joint_scale", "prismatic_joints", "read_table",
+           "resolve_unit"]

@@ -86,7 +86,7 @@ class Dataset:
 
     @classmethod
     def from_csv(cls, path, joints=None, device=None, position_columns=None, length_unit=None, angle_unit=None,
-                 covariates=(), delimiter=",", marker=None, check_units=True):
+                 covariates=(), delimiter=",", marker=None, check_units=True, prismatic=()):
         """Read a measurement CSV (layout in `jaxcal.fit.csvfile` and docs/file-formats.md).
 
         joints: the joint columns in the order of q (default: every column that is not a
@@ -94,6 +94,7 @@ class Dataset:
         device: "position" or "pose" (default: "pose" when the marker has orientation columns).
         marker: which marker's columns to read when there are several (`x1..`, `x2..`; default the first).
         length_unit ("m"/"mm"), angle_unit ("rad"/"deg"): override the file's `# units:` line; default SI.
+        prismatic: joint columns that are lengths (in the length unit); `csvfile.prismatic_joints(robot)` lists them.
         check_units: raise (or warn) on values that look like another unit (see `csvfile.check_*_units`).
         Errors name the file, the 1-based line and the column.
         """
@@ -119,9 +120,9 @@ class Dataset:
         block = lambda names: tab.values[:, [col[c] for c in names]]  # noqa: E731
         q_raw, p = block(lay.joints), block(lay.position) * cf.LENGTH_SCALE[length]
         if check_units:
-            cf.check_joint_units(q_raw, lay.joints, tab.lines, angle, path)
+            cf.check_joint_units(q_raw, lay.joints, tab.lines, angle, path, prismatic)
             cf.check_length_units(p, tab.lines, length, path)
-        q = q_raw * cf.ANGLE_SCALE[angle]
+        q = q_raw * cf.joint_scale(lay.joints, prismatic, length, angle)
         cov = {name: tab.values[:, col[c]] for name, c in lay.covariates.items()}
         if lay.orientation is not None:
             R = cf._rotations(lay.orientation, block(lay.orientation_columns), tab.lines, path, cf.ANGLE_SCALE[angle])
@@ -131,9 +132,10 @@ class Dataset:
         ds.units = {"length": length, "angle": angle}
         return ds
 
-    def to_csv(self, path, length_unit="m", angle_unit="rad", joints=None):
+    def to_csv(self, path, length_unit="m", angle_unit="rad", joints=None, prismatic=()):
         """Write this dataset as CSV (joint columns, x, y, z, and phix, phiy, phiz for poses, then the
-        covariates) with a `# units:` header line; atomically (temp file, then rename)."""
+        covariates) with a `# units:` header line; atomically (temp file, then rename). Prismatic
+        joints (names in `prismatic`) are written in the length unit."""
         from scipy.spatial.transform import Rotation
 
         from jaxcal.fit import csvfile as cf
@@ -149,7 +151,8 @@ class Dataset:
             rv = Rotation.from_matrix(self.y[:, :3, :3]).as_rotvec() * an
             meas, names = np.hstack([self.y[:, :3, 3] * ls, rv]), ["x", "y", "z", "phix", "phiy", "phiz"]
         cov = sorted(self.covariates)
-        table = np.hstack([self.q * an, meas] + [np.asarray(self.covariates[c], float)[:, None] for c in cov])
+        q_file = self.q / cf.joint_scale(joints, prismatic, length_unit, angle_unit)
+        table = np.hstack([q_file, meas] + [np.asarray(self.covariates[c], float)[:, None] for c in cov])
         lines = [f"# units: length={length_unit}, angle={angle_unit}", ",".join(joints + names + cov)]
         lines += [",".join(f"{v:.17g}" for v in row) for row in table]
         return write_text_atomic(str(path), "\n".join(lines) + "\n")
