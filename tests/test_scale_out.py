@@ -1,6 +1,6 @@
 """Scale-out on two host CPU devices (a subprocess with XLA_FLAGS forcing two devices): a batch of
-while-loop solves (fast), the fleet identification and the Monte Carlo (slow: 35 s of CPU, 100+ s
-on the shared machine, mostly compiling the vmapped LM twice) give the same numbers sharded and unsharded."""
+while-loop solves (fast, ~10 s of CPU), the fleet identification and the Monte Carlo (slow: 35 s and
+80 s of CPU, mostly compiling the vmapped LM per slice shape) give the same numbers sharded and unsharded."""
 
 import json
 import os
