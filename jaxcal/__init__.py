@@ -10,6 +10,7 @@ from jaxcal import (
            _setup,  # noqa: F401  (float64 + compilation cache before anything traces)
            ga,  # noqa: E402  (genetic algorithm)
            measure,
+           realdata,  # built-in real datasets (TALOS, UR10, TIAGo)
            robots,
 )
 from jaxcal.fit import DataError, Dataset, FitResult, identify, perturb, random_configurations, simulate, uncertainty
@@ -21,5 +22,5 @@ from jaxcal.robots.io import load_robot, save_robot
 
 __version__ = "0.1.0"
 __all__ = ["DataError", "Dataset", "FitResult", "Pose", "Robot", "forward", "ga", "identifiable", "identify", "make_device",
-           "load_robot", "measure", "perturb", "random_configurations", "robots", "save_robot", "simulate",
+           "load_robot", "measure", "perturb", "realdata", "random_configurations", "robots", "save_robot", "simulate",
            "uncertainty"]

@@ -227,3 +227,42 @@ def test_identify_recovers_urdf_geometry():
     data = jc.simulate(rb, a_true, jc.random_configurations(rb, 60, seed=4), "position", noise=1e-6)
     fit = jc.identify(rb, data)
     assert fit.converged and fit.rms_after < 5e-3 < fit.rms_before
+
+
+def test_gravity_torques_are_the_potential_gradient(rng):
+    """tau_j = d/dq_j sum_i m_i g . c_i(q) (generalised gravity force), by central differences."""
+    from jaxcal.kin.model import frames
+    from jaxcal.robots.urdf import GRAVITY, gravity_torques
+
+    rb = robot_from_urdf(ARM, base="world", tip="tool")
+    mass = np.array([b["mass"] for b in rb.extras["inertia"]])
+    com = np.stack([b["com"] for b in rb.extras["inertia"]])
+
+    def work(q):
+        f = frames(rb, rb.nominal, q)
+        centres = np.asarray(f.p) + np.einsum("bij,bj->bi", np.asarray(f.R), com)
+        return np.array([np.sum(mass * (centres @ np.asarray(GRAVITY)))])
+
+    q0 = rng.uniform(rb.q_min, rb.q_max)
+    tau = gravity_torques(rb, q0)[0]
+    revolute = [0, 1]  # j1, j2 (j3 is prismatic)
+    assert np.allclose(tau, central_fd(work, q0)[0, revolute], rtol=1e-7, atol=1e-9)
+
+
+def test_compliance_model_and_its_jacobian(rng):
+    from jaxcal.robots.urdf import compliance_inputs, with_gravity_compliance
+
+    rb = robot_from_urdf(ARM, base="world", tip="tool")
+    rc = with_gravity_compliance(rb)
+    assert rc.joint_names == ("j1", "j2", "j3", "j1.tau", "j2.tau") and "j2.compliance" in rc.names
+    Q = rng.uniform(rb.q_min, rb.q_max, (5, 3))
+    X = compliance_inputs(rb, Q)
+    a = np.asarray(rc.nominal).copy()
+    assert np.max(np.abs(pose_matrix(rc, a, X) - pose_matrix(rb, rb.nominal, Q))) < 1e-14  # zero compliance
+    k = 1e-3
+    a[rc.index("j2.compliance")] = k
+    shifted = Q.copy()
+    shifted[:, 1] += k * X[:, 4]
+    assert np.max(np.abs(pose_matrix(rc, a, X) - pose_matrix(rb, rb.nominal, shifted))) < 1e-12
+    f = jax.jit(lambda p: jc.forward(rc, p, X).p.reshape(-1))
+    assert rel_err(np.asarray(jax.jacfwd(f)(jnp.asarray(a))), central_fd(f, a)) < 1e-8  # measured ~1e-10

@@ -100,12 +100,17 @@ def urdf_joint(row, kind, qv) -> Pose:
     """URDF joint transform T = Trans(xyz) Rot(rpy) Motion(axis, q + offset).
 
     kind = (type, axis) with type "revolute" (continuous too), "prismatic" or "fixed" and axis
-    a unit 3-tuple; the offset shifts the joint zero (angle or length).
+    a unit 3-tuple; the offset shifts the joint zero (angle or length). A revolute row may carry an
+    eighth entry, a compliance k (rad/(N m)): the angle becomes q + offset + k tau with the gravity
+    torque tau as a second joint input (`jaxcal.robots.urdf.with_gravity_compliance`).
     """
     joint_type, axis = kind
     R0 = rpy_to_matrix(row[3:6])
     if joint_type == "revolute":
-        return Pose(R0 @ axis_rotation(axis, qv[0] + row[6]), row[0:3])
+        angle = qv[0] + row[6]
+        if len(row) == 8:  # gravity compliance: qv[1] is the gravity torque, row[7] the compliance
+            angle = angle + row[7] * qv[1]
+        return Pose(R0 @ axis_rotation(axis, angle), row[0:3])
     if joint_type == "prismatic":
         return Pose(R0, row[0:3] + R0 @ (np.asarray(axis, float) * (qv[0] + row[6])))
     if joint_type == "fixed":

@@ -52,3 +52,36 @@ def stanford():
     """Stanford RRP3R manipulator of seed 001 Table 1 (43 parameters: theta0, r0, five per frame
     1..7 and the gains K1..K6)."""
     return load_robot(_data_file("stanford.yaml"))
+
+
+# -- Real robots (issue 8): the URDF chains of the built-in real datasets (`jaxcal.realdata`) --
+def _real_robot(dataset: str):
+    from jaxcal.realdata import _SPECS, DATA_DIR
+    from jaxcal.robots.urdf import load_urdf
+
+    spec = _SPECS[dataset]
+    return load_urdf(os.path.join(DATA_DIR, spec["folder"], spec["urdf"]), tip=spec["tip"], name=spec["robot"])
+
+
+@register("talos_left_arm")
+@functools.cache
+def talos_left_arm():
+    """PAL TALOS torso + left arm from its URDF (base_link -> gripper_left_base_link; 9 joints, 69
+    parameters); data: `jaxcal.realdata.load("talos")`. URDF by FIGAROH's authors, Apache-2.0."""
+    return _real_robot("talos")
+
+
+@register("ur10")
+@functools.cache
+def ur10():
+    """Universal Robots UR10 from its URDF (world -> wrist_3_link; 6 joints, 42 parameters);
+    data: `jaxcal.realdata.load("ur10")`. URDF by FIGAROH's authors, Apache-2.0."""
+    return _real_robot("ur10")
+
+
+@register("tiago_arm")
+@functools.cache
+def tiago_arm():
+    """PAL TIAGo torso lift + arm from its URDF (base_footprint -> wrist_ft_tool_link; 8 joints, 62
+    parameters); data: `jaxcal.realdata.load("tiago")`. URDF by FIGAROH's authors, Apache-2.0."""
+    return _real_robot("tiago")

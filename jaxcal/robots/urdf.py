@@ -22,6 +22,7 @@ Fixed joints folded at import keep their origins; the moving joint after them ab
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import tempfile
 
@@ -303,6 +304,65 @@ def load_urdf(path: str, base: str | None = None, tip: str | None = None, name: 
     return robot
 
 
+# -- joint compliance under gravity ---------------------------------------------------------
+GRAVITY = (0.0, 0.0, -9.81)
+
+
+def gravity_torques(robot: Robot, q, a=None, gravity=GRAVITY) -> np.ndarray:
+    """Gravity torque (N m) on each revolute joint of a URDF chain, (N, n_revolute), from the
+    link masses and centres of mass in `robot.extras["inertia"]` and the frames at parameters a:
+    tau_j = u_j . sum_{i >= j} (c_i - o_j) x (m_i g), with u_j the joint axis and o_j its origin.
+    Only the chain's links count (branches hanging off it are not included)."""
+    from jaxcal.kin.model import frames
+
+    a = robot.nominal if a is None else a
+    f = frames(robot, a, np.atleast_2d(np.asarray(q, float)))
+    R, p = np.asarray(f.R), np.asarray(f.p)
+    mass = np.array([b["mass"] for b in robot.extras["inertia"]])
+    com = np.stack([np.asarray(b["com"], float) for b in robot.extras["inertia"]])
+    centres = p + np.einsum("nbij,bj->nbi", R, com)
+    force = mass[:, None] * np.asarray(gravity, float)[None, :]
+    out = []
+    for j, body in enumerate(robot.bodies):
+        if body.kind[0] != "revolute":
+            continue
+        moment = np.cross(centres[:, j:] - p[:, j:j + 1], force[None, j:]).sum(axis=1)
+        out.append(np.einsum("ni,ni->n", R[:, j] @ np.asarray(body.kind[1]), moment))
+    return np.stack(out, axis=1)
+
+
+def with_gravity_compliance(robot: Robot) -> Robot:
+    """The robot with a compliance k_j (rad/(N m), parameter `<joint>.compliance`) on every revolute
+    joint: angle = q + offset + k_j tau_j, where tau_j, the gravity torque from `gravity_torques` at
+    the nominal geometry, is an extra joint input named `<joint>.tau` (after the joint values)."""
+    names, values, units, priority = list(robot.names), list(robot.nominal_np), list(robot.units), list(robot.priority)
+    n, bodies, taus = robot.n_inputs, [], []
+    for body in robot.bodies:
+        if body.kind[0] != "revolute":
+            bodies.append(body)
+            continue
+        names.append(f"{body.name}.compliance")
+        values.append(0.0)
+        units.append("angle")  # rad per N m; typical values 1e-5..1e-3, sized like a small angle
+        priority.append(4.0)
+        bodies.append(dataclasses.replace(body, rows=body.rows + (len(names) - 1,), inputs=body.inputs + (n + len(taus),)))
+        taus.append(f"{body.name}.tau")
+    k = len(taus)
+    return robot.replace(
+        name=f"{robot.name}+compliance", bodies=tuple(bodies), names=tuple(names), nominal_np=np.array(values),
+        units=tuple(units), free_mask=np.ones(len(names), bool), priority=np.array(priority),
+        joint_names=robot.joint_names + tuple(taus), home_np=np.concatenate([robot.home_np, np.zeros(k)]),
+        q_min=np.concatenate([robot.q_min, np.full(k, -1e3)]), q_max=np.concatenate([robot.q_max, np.full(k, 1e3)]),
+        extras={**robot.extras, "compliance_of": robot},
+    )
+
+
+def compliance_inputs(robot: Robot, q) -> np.ndarray:
+    """Joint inputs of `with_gravity_compliance(robot)`: q followed by the nominal gravity torques."""
+    q = np.atleast_2d(np.asarray(q, float))
+    return np.concatenate([q, gravity_torques(robot, q)], axis=1)
+
+
 # -- export ---------------------------------------------------------------------------------
 def _calibrated_origin(robot: Robot, body: Body, a_ext) -> np.ndarray:
     """The body's origin at parameters a with the joint offset folded in (module docstring)."""
@@ -373,4 +433,5 @@ def save_urdf(robot: Robot, path: str, a=None) -> str:
     return path
 
 
-__all__ = ["URDFError", "load_urdf", "matrix_rpy", "parse_urdf", "robot_from_urdf", "rpy_matrix", "save_urdf", "urdf_text"]
+__all__ = ["GRAVITY", "URDFError", "compliance_inputs", "gravity_torques", "load_urdf", "with_gravity_compliance",
+           "matrix_rpy", "parse_urdf", "robot_from_urdf", "rpy_matrix", "save_urdf", "urdf_text"]
