@@ -1,6 +1,5 @@
 """`jaxcal` subcommands, called in-process through `jaxcal.cli.main`."""
 
-import importlib.util
 import json
 import os
 
@@ -94,17 +93,26 @@ def test_bench_quick(tmp_path):
     assert main(["bench", "--script", "no_such_benchmark", "-q"]) == 2
 
 
+def test_diagnose_without_the_gap_module_says_so(simulated, capsys, monkeypatch):
+    import sys
+
+    folder, csv, _ = simulated
+    monkeypatch.setitem(sys.modules, "jaxcal.gap", None)  # as if jaxcal.gap were not installed
+    out = folder / "diag-missing"
+    assert main(["diagnose", "mrr1", csv, "--out", str(out), "-q"]) == 1
+    assert "needs the gap-diagnosis module jaxcal.gap" in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.slow  # the diagnosis fits ten effects over five folds: about 50 s of CPU here
 def test_diagnose(simulated, capsys):
+    pytest.importorskip("jaxcal.gap")
     folder, csv, _ = simulated
     out = folder / "diag"
-    rc = main(["diagnose", "mrr1", csv, "--out", str(out), "-q"])
-    if importlib.util.find_spec("jaxcal.gap") is None:
-        assert rc == 1 and "jaxcal.gap" in capsys.readouterr().err
-        assert not out.exists()
-    else:
-        assert rc == 0
-        d = json.load(open(out / "diagnosis.json"))
-        assert d
+    assert main(["diagnose", "mrr1", csv, "--out", str(out), "-q"]) == 0
+    d = json.load(open(out / "diagnosis.json"))
+    assert d["robot"] == "mrr1" and "verdict" in d
+    assert "verdict" in capsys.readouterr().out
 
 
 def test_help_lists_every_subcommand(capsys):
