@@ -59,15 +59,16 @@ def test_pose_round_trip_in_mm_and_deg(tmp_path):
     assert prismatic == ("j3",)
     path = data.to_csv(tmp_path / "poses.csv", length_unit="mm", angle_unit="deg", prismatic=prismatic)
     assert open(path).readline().startswith("# units: length=mm, angle=deg")
-    written = np.genfromtxt(path, delimiter=",", names=True, skip_header=1)
+    assert open(path).read().splitlines()[1] == "# prismatic: j3"
+    written = np.genfromtxt(path, delimiter=",", names=True, skip_header=2)
     np.testing.assert_allclose(written["j3"], data.q[:, 2] * 1e3)  # the prismatic joint in mm
     np.testing.assert_allclose(written["j1"], np.degrees(data.q[:, 0]))
-    back = jc.Dataset.from_csv(path, prismatic=prismatic)  # units from the header line
+    back = jc.Dataset.from_csv(path)  # units and the prismatic joint from the header lines
     assert back.units == {"length": "mm", "angle": "deg"} and back.device.kind == "pose"
     np.testing.assert_allclose(back.q, data.q, atol=1e-13)
     np.testing.assert_allclose(back.y, data.y, atol=1e-12)
     np.testing.assert_allclose(back.covariates["temperature"], data.covariates["temperature"])
-    position_only = jc.Dataset.from_csv(path, device="position", prismatic=prismatic)
+    position_only = jc.Dataset.from_csv(path, device="position")
     np.testing.assert_allclose(position_only.y, data.y[:, :3, 3], atol=1e-13)
     with pytest.raises(jc.DataError, match="header says length=mm but length_unit='m'"):
         jc.Dataset.from_csv(path, length_unit="m")

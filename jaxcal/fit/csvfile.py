@@ -7,8 +7,9 @@ Layout (see docs/file-formats.md): one header row, one row per sample.
 - optional orientation of marker k: a rotation vector `phixk, phiyk, phizk` (FIGAROH), a unit
   quaternion `qwk, qxk, qyk, qzk`, or a rotation matrix `r11 .. r33` (single marker);
 - optional covariates: `time` (or `t`), `temperature`, `direction`, and any named with `covariates=`.
-Units: lines starting with `#` before the header may say `# units: length=mm, angle=deg`;
-arguments give them otherwise; default m and rad. Orientation angles use the angle unit.
+Units: lines starting with `#` before the header may say `# units: length=mm, angle=deg` and
+`# prismatic: j3` (joint columns that are lengths); arguments give them otherwise; default m and
+rad. Orientation angles use the angle unit.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ _ROTVEC = re.compile(r"^phi([xyz])(\d*)$")
 _QUAT = re.compile(r"^q([wxyz])(\d*)$")
 _MATRIX = re.compile(r"^r([123])([123])$")
 _UNITS = re.compile(r"\b(length|angle)\s*[=:]\s*([a-z]+)", re.IGNORECASE)
+_PRISMATIC = re.compile(r"^#\s*prismatic\s*:\s*(.*)$", re.IGNORECASE)
 MAX_POSITION_M = 20.0  # |p| beyond this in metres is taken for millimetres given as metres
 MIN_POSITION_MM = 5.0  # every |p| below this in millimetres looks like metres given as millimetres
 MAX_ANGLE_RAD = 2 * np.pi + 0.5  # |q| beyond this in radians is taken for degrees given as radians
@@ -66,6 +68,10 @@ class Table:
 
 
 def _header_units(comment: str, path: str, lineno: int) -> dict:
+    """{"length": .., "angle": ..} from a `# units:` line, or {"prismatic": [names]} from a `# prismatic:` line."""
+    m = _PRISMATIC.match(comment)
+    if m:
+        return {"prismatic": [n.strip() for n in m.group(1).split(",") if n.strip()]}
     out = {}
     for key, unit in _UNITS.findall(comment):
         key, unit = key.lower(), unit.lower()

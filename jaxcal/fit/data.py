@@ -94,7 +94,8 @@ class Dataset:
         device: "position" or "pose" (default: "pose" when the marker has orientation columns).
         marker: which marker's columns to read when there are several (`x1..`, `x2..`; default the first).
         length_unit ("m"/"mm"), angle_unit ("rad"/"deg"): override the file's `# units:` line; default SI.
-        prismatic: joint columns that are lengths (in the length unit); `csvfile.prismatic_joints(robot)` lists them.
+        prismatic: joint columns that are lengths (in the length unit), added to those of a `# prismatic:`
+        header line; `csvfile.prismatic_joints(robot)` lists a robot's.
         check_units: raise (or warn) on values that look like another unit (see `csvfile.check_*_units`).
         Errors name the file, the 1-based line and the column.
         """
@@ -116,6 +117,7 @@ class Dataset:
         tab = cf.read_table(path, delimiter, needed=cols)
         length = cf.resolve_unit("length", length_unit, tab.units.get("length"), path)
         angle = cf.resolve_unit("angle", angle_unit, tab.units.get("angle"), path)
+        prismatic = tuple(prismatic) + tuple(tab.units.get("prismatic", ()))
         col = {h: i for i, h in enumerate(tab.header)}
         block = lambda names: tab.values[:, [col[c] for c in names]]  # noqa: E731
         q_raw, p = block(lay.joints), block(lay.position) * cf.LENGTH_SCALE[length]
@@ -135,7 +137,7 @@ class Dataset:
     def to_csv(self, path, length_unit="m", angle_unit="rad", joints=None, prismatic=()):
         """Write this dataset as CSV (joint columns, x, y, z, and phix, phiy, phiz for poses, then the
         covariates) with a `# units:` header line; atomically (temp file, then rename). Prismatic
-        joints (names in `prismatic`) are written in the length unit."""
+        joints (names in `prismatic`) are written in the length unit and listed in a `# prismatic:` line."""
         from scipy.spatial.transform import Rotation
 
         from jaxcal.fit import csvfile as cf
@@ -153,6 +155,8 @@ class Dataset:
         cov = sorted(self.covariates)
         q_file = self.q / cf.joint_scale(joints, prismatic, length_unit, angle_unit)
         table = np.hstack([q_file, meas] + [np.asarray(self.covariates[c], float)[:, None] for c in cov])
-        lines = [f"# units: length={length_unit}, angle={angle_unit}", ",".join(joints + names + cov)]
+        lines = [f"# units: length={length_unit}, angle={angle_unit}"]
+        lines += [f"# prismatic: {', '.join(j for j in joints if j in prismatic)}"] if set(prismatic) & set(joints) else []
+        lines += [",".join(joints + names + cov)]
         lines += [",".join(f"{v:.17g}" for v in row) for row in table]
         return write_text_atomic(str(path), "\n".join(lines) + "\n")
