@@ -119,7 +119,8 @@ def _calibrate(args) -> int:
             for name in ("results.json", "report.md", "errors_per_pose.png", "error_map.png", "convergence.png", robot_file):
                 check_not_input(os.path.join(out, name), inputs)
             with _stage(prog, f"identifying {robot.name} on {len(data)} samples (compiles the solver on first use)"):
-                res = run_job(robot, data, holdout=job["holdout"], seed=job["seed"], solver=job["solver"], free=job.get("free"),
+                res = run_job(robot, data, holdout=job["holdout"], seed=job["seed"], solver=job["solver"],
+                              free=expand_free(job.get("free"), robot),
                               known=tuple(job.get("known") or ()), sigma_position=job["sigma_position"],
                               sigma_orientation=job["sigma_orientation"], max_steps=job["max_steps"])
             with _stage(prog, f"writing the report to {out}"):
@@ -134,6 +135,22 @@ def _calibrate(args) -> int:
               f"{h['after']:.4g} mm (calibrated)")
     print(f"report: {os.path.join(out, 'report.md')}; calibrated robot: {os.path.join(out, robot_file)}")
     return 0
+
+
+def expand_free(patterns, robot):
+    """Robot parameter names matching names or shell patterns (`*.offset`: joint offsets only);
+    a pattern that matches nothing is an error naming it."""
+    import fnmatch
+
+    if patterns is None:
+        return None
+    out = []
+    for pat in patterns:
+        hits = [n for n in robot.names if fnmatch.fnmatchcase(n, pat)]
+        if not hits:
+            raise KeyError(f"--free / free: {pat!r} matches no parameter of {robot.name} (names look like {robot.names[0]!r})")
+        out += [n for n in hits if n not in out]
+    return out
 
 
 def _robot_writer(robot, a, is_urdf):
@@ -338,7 +355,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--holdout", type=float, help="fraction of samples held out of the fit (default 0.25)")
     c.add_argument("--seed", type=int, help="seed of the held-out split (default 0)")
     c.add_argument("--solver", choices=("lm", "lm_normal", "gn", "gn_normal", "dogleg", "bfgs"))
-    c.add_argument("--free", nargs="+", help="robot parameters to estimate (default: all free, base set)")
+    c.add_argument("--free", nargs="+", help="robot parameters to estimate, names or patterns such as '*.offset' "
+                   "(default: all free; the base set of them is identified)")
     c.add_argument("--known", nargs="+", help="device parameters (or prefixes dev, tool) taken as known")
     c.add_argument("--sigma-position", dest="sigma_position", type=float, help="position noise in m (residual weight)")
     c.add_argument("--sigma-orientation", dest="sigma_orientation", type=float, help="orientation noise in rad")

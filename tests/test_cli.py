@@ -121,3 +121,18 @@ def test_help_lists_every_subcommand(capsys):
     text = capsys.readouterr().out
     for cmd in ("calibrate", "identifiable", "simulate", "diagnose", "bench", "demo"):
         assert cmd in text
+
+
+def test_free_accepts_names_and_patterns(tmp_path, capsys):
+    from jaxcal.cli import expand_free
+
+    rb = jc.robots.get("mrr1")
+    assert expand_free(["j2.*"], rb) == [n for n in rb.names if n.startswith("j2.")]
+    assert expand_free([rb.names[3], "j2.*", rb.names[3]], rb)[0] == rb.names[3]
+    assert expand_free(None, rb) is None
+    with pytest.raises(KeyError, match=r"'k9\.\*' matches no parameter of mrr1"):
+        expand_free(["k9.*"], rb)
+    data = tmp_path / "d.csv"
+    data.write_text("j1,j2,j3,x,y,z\n0.1,0.2,0.1,0.5,0.1,0.2\n0.2,0.1,0.1,0.4,0.1,0.2\n")
+    assert main(["calibrate", "mrr1", str(data), "--free", "k9.*", "--out", str(tmp_path / "o"), "-q"]) == 2
+    assert "matches no parameter" in capsys.readouterr().err and not (tmp_path / "o").exists()
