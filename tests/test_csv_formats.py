@@ -28,9 +28,11 @@ def test_figaroh_files_read_as_is(rel, n, n_joints, kind, cov):
     np.testing.assert_array_equal(d.q[:, 0], raw[d.joint_names[0]])
     if kind == "position":
         np.testing.assert_array_equal(d.y[:, 0], raw["x1"])
-    else:  # phix1..phiz1 is a rotation vector
-        R = Rotation.from_rotvec(np.stack([raw["phix1"], raw["phiy1"], raw["phiz1"]], 1)).as_matrix()
-        np.testing.assert_allclose(d.y[:, :3, :3], R, atol=1e-15)
+    else:  # phix1..phiz1 are roll, pitch, yaw about fixed X, Y, Z (URDF's rpy): R = Rz Ry Rx
+        from jaxcal.robots.urdf import rpy_matrix
+
+        R = np.stack([rpy_matrix(r) for r in np.stack([raw["phix1"], raw["phiy1"], raw["phiz1"]], 1)])
+        np.testing.assert_allclose(d.y[:, :3, :3], R, atol=1e-14)
         np.testing.assert_array_equal(d.y[:, 2, 3], raw["z1"])
 
 
@@ -74,11 +76,13 @@ def test_pose_round_trip_in_mm_and_deg(tmp_path):
         jc.Dataset.from_csv(path, length_unit="m")
 
 
-@pytest.mark.parametrize("encoding", ["quaternion", "matrix"])
-def test_quaternion_and_matrix_columns(tmp_path, encoding):
+@pytest.mark.parametrize("encoding", ["rotvec", "quaternion", "matrix"])
+def test_rotation_vector_quaternion_and_matrix_columns(tmp_path, encoding):
     rb, data = _pose_data()
     R, p = data.y[:, :3, :3], data.y[:, :3, 3]
-    if encoding == "quaternion":
+    if encoding == "rotvec":
+        cols, block = ["rvx", "rvy", "rvz"], Rotation.from_matrix(R).as_rotvec()
+    elif encoding == "quaternion":
         xyzw = Rotation.from_matrix(R).as_quat()
         cols, block = ["qw", "qx", "qy", "qz"], np.column_stack([xyzw[:, 3], xyzw[:, :3]])
     else:
@@ -90,10 +94,10 @@ def test_quaternion_and_matrix_columns(tmp_path, encoding):
     back = jc.Dataset.from_csv(path, joints=rb.joint_names)
     np.testing.assert_allclose(back.y, data.y, atol=1e-13)
     # a bad orientation on the 3rd data row (line 4) is reported there
-    block[2] *= 1.1
+    block[2] *= 1.1 if encoding != "rotvec" else 100.0
     rows[3] = ",".join(f"{v:.17g}" for v in np.hstack([data.q[2], p[2], block[2]]))
     path.write_text("\n".join(rows) + "\n")
-    with pytest.raises(jc.DataError, match="line 4: (quaternion|r11..r33)"):
+    with pytest.raises(jc.DataError, match="line 4: (quaternion|r11..r33|rotation vector)"):
         jc.Dataset.from_csv(path, joints=rb.joint_names)
 
 

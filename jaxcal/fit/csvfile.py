@@ -4,8 +4,10 @@ Layout (see docs/file-formats.md): one header row, one row per sample.
 - joints: columns named after the robot's joints (or given with `joints=`); revolute joints in the
   angle unit, prismatic joints (`prismatic=`) in the length unit;
 - position of marker k: `x, y, z` (one marker) or `xk, yk, zk` (FIGAROH: `x1, y1, z1, x2, ...`);
-- optional orientation of marker k: a rotation vector `phixk, phiyk, phizk` (FIGAROH), a unit
-  quaternion `qwk, qxk, qyk, qzk`, or a rotation matrix `r11 .. r33` (single marker);
+- optional orientation of marker k: roll-pitch-yaw angles `phixk, phiyk, phizk` (FIGAROH's
+  columns; fixed-axis X-Y-Z as URDF and pinocchio: R = Rz(phiz) Ry(phiy) Rx(phix)), a rotation
+  vector `rvxk, rvyk, rvzk`, a unit quaternion `qwk, qxk, qyk, qzk`, or a rotation matrix
+  `r11 .. r33` (single marker);
 - optional covariates: `time` (or `t`), `temperature`, `direction`, and any named with `covariates=`.
 Units: lines starting with `#` before the header may say `# units: length=mm, angle=deg` and
 `# prismatic: j3` (joint columns that are lengths); arguments give them otherwise; default m and
@@ -27,7 +29,8 @@ ANGLE_SCALE = {"rad": 1.0, "deg": np.pi / 180.0}
 COVARIATE_ALIASES = {"time": "time", "t": "time", "temperature": "temperature", "temp": "temperature",
                      "direction": "direction"}
 _POS = re.compile(r"^([xyz])(\d*)$")
-_ROTVEC = re.compile(r"^phi([xyz])(\d*)$")
+_RPY = re.compile(r"^phi([xyz])(\d*)$")
+_ROTVEC = re.compile(r"^rv([xyz])(\d*)$")
 _QUAT = re.compile(r"^q([wxyz])(\d*)$")
 _MATRIX = re.compile(r"^r([123])([123])$")
 _UNITS = re.compile(r"\b(length|angle)\s*[=:]\s*([a-z]+)", re.IGNORECASE)
@@ -152,7 +155,7 @@ class Layout:
 
     joints: list[str]
     position: list[str]
-    orientation: str | None  # "rotvec" | "quaternion" | "matrix" | None
+    orientation: str | None  # "rpy" | "rotvec" | "quaternion" | "matrix" | None
     orientation_columns: list[str]
     covariates: dict  # canonical name -> column
     markers: list[str]  # marker ids found ("" for plain x, y, z)
@@ -168,7 +171,10 @@ def _markers(header):
 
 
 def _orientation_columns(header, marker):
-    rv = [f"phi{a}{marker}" for a in "xyz"]
+    rpy = [f"phi{a}{marker}" for a in "xyz"]
+    if all(c in header for c in rpy):
+        return "rpy", rpy
+    rv = [f"rv{a}{marker}" for a in "xyz"]
     if all(c in header for c in rv):
         return "rotvec", rv
     qt = [f"q{a}{marker}" for a in "wxyz"]
@@ -181,7 +187,7 @@ def _orientation_columns(header, marker):
 
 
 def _is_measurement(h):
-    return bool(_POS.match(h) or _ROTVEC.match(h) or _QUAT.match(h) or _MATRIX.match(h))
+    return bool(_POS.match(h) or _RPY.match(h) or _ROTVEC.match(h) or _QUAT.match(h) or _MATRIX.match(h))
 
 
 def find_layout(header, path, joints=None, position_columns=None, marker=None, covariates=(), orientation=True) -> Layout:
@@ -225,6 +231,14 @@ def _rotations(kind, block, lines, path, angle_scale):
     """(N, 3, 3) rotation matrices from the orientation columns; errors name the line."""
     from scipy.spatial.transform import Rotation
 
+    if kind == "rpy":
+        rpy = block * angle_scale
+        big = np.abs(rpy).max(axis=1) > MAX_ANGLE_RAD
+        if big.any():
+            i = int(np.flatnonzero(big)[0])
+            raise DataError(f"{path}, line {lines[i]}: roll/pitch/yaw angle of {np.abs(rpy[i]).max():.3g} rad: "
+                            "degrees given as radians? state the angle unit")
+        return Rotation.from_euler("xyz", rpy).as_matrix()  # lower case: fixed axes, R = Rz Ry Rx
     if kind == "rotvec":
         rv = block * angle_scale
         big = np.linalg.norm(rv, axis=1) > 2 * MAX_ANGLE_RAD

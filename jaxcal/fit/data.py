@@ -110,7 +110,8 @@ class Dataset:
         kind = None if device is None else _as_device(device).kind
         lay = cf.find_layout(head.header, path, joints, position_columns, marker, covariates, orientation=kind != "position")
         if kind == "pose" and lay.orientation is None:
-            raise DataError(f"{path}: device 'pose' needs orientation columns (phix, phiy, phiz / qw, qx, qy, qz / r11..r33)")
+            raise DataError(f"{path}: device 'pose' needs orientation columns "
+                            "(phix, phiy, phiz / rvx, rvy, rvz / qw, qx, qy, qz / r11..r33)")
         if kind not in (None, "position", "pose"):
             raise DataError(f"{path}: CSV readings are positions or poses, not {kind!r}")
         cols = lay.joints + lay.position + lay.orientation_columns + list(lay.covariates.values())
@@ -135,8 +136,8 @@ class Dataset:
         return ds
 
     def to_csv(self, path, length_unit="m", angle_unit="rad", joints=None, prismatic=()):
-        """Write this dataset as CSV (joint columns, x, y, z, and phix, phiy, phiz for poses, then the
-        covariates) with a `# units:` header line; atomically (temp file, then rename). Prismatic
+        """Write this dataset as CSV (joint columns, x, y, z, and roll-pitch-yaw phix, phiy, phiz for
+        poses, then the covariates) with a `# units:` header line; atomically (temp file, then rename). Prismatic
         joints (names in `prismatic`) are written in the length unit and listed in a `# prismatic:` line."""
         from scipy.spatial.transform import Rotation
 
@@ -150,8 +151,8 @@ class Dataset:
         if self.device.kind == "position":
             meas, names = self.y * ls, ["x", "y", "z"]
         else:
-            rv = Rotation.from_matrix(self.y[:, :3, :3]).as_rotvec() * an
-            meas, names = np.hstack([self.y[:, :3, 3] * ls, rv]), ["x", "y", "z", "phix", "phiy", "phiz"]
+            rpy = Rotation.from_matrix(self.y[:, :3, :3]).as_euler("xyz") * an
+            meas, names = np.hstack([self.y[:, :3, 3] * ls, rpy]), ["x", "y", "z", "phix", "phiy", "phiz"]
         cov = sorted(self.covariates)
         q_file = self.q / cf.joint_scale(joints, prismatic, length_unit, angle_unit)
         table = np.hstack([q_file, meas] + [np.asarray(self.covariates[c], float)[:, None] for c in cov])
