@@ -102,7 +102,7 @@ def job_options(args) -> dict:
 def _calibrate(args) -> int:
     import jaxcal as jc
     from jaxcal.io_atomic import check_not_input
-    from jaxcal.report.job import run_job, write_job
+    from jaxcal.report.job import heldout_verdict, run_job, write_job
 
     try:
         job = job_options(args)
@@ -133,6 +133,9 @@ def _calibrate(args) -> int:
         h = r["heldout"]["position_mm"]
         print(f"held-out ({res.summary['samples']['heldout']} samples): position RMS {h['before']:.4g} mm (nominal) -> "
               f"{h['after']:.4g} mm (calibrated)")
+    verdict = heldout_verdict(res.summary)
+    if verdict:
+        print(verdict)
     print(f"report: {os.path.join(out, 'report.md')}; calibrated robot: {os.path.join(out, robot_file)}")
     return 0
 

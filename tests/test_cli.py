@@ -40,6 +40,7 @@ def test_calibrate_builtin_robot(simulated, capsys):
     assert res["samples"] == {"total": 40, "train": 30, "heldout": 10}
     held = res["rms"]["heldout"]["position_mm"]
     assert held["after"] < 0.05 < 0.5 < held["before"], held  # 2 mm errors, 0.01 mm noise
+    assert res["heldout_verdict"].startswith("Held-out error reduced by")
     for name in res["files"]:
         assert (out / name).stat().st_size > 0
     assert not [f for f in os.listdir(out) if f.startswith(".")], "staging files left behind"
@@ -136,3 +137,15 @@ def test_free_accepts_names_and_patterns(tmp_path, capsys):
     data.write_text("j1,j2,j3,x,y,z\n0.1,0.2,0.1,0.5,0.1,0.2\n0.2,0.1,0.1,0.4,0.1,0.2\n")
     assert main(["calibrate", "mrr1", str(data), "--free", "k9.*", "--out", str(tmp_path / "o"), "-q"]) == 2
     assert "matches no parameter" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
+def test_heldout_verdict_flags_a_fit_that_does_not_generalise():
+    from jaxcal.report.job import heldout_verdict
+
+    worse = {"rms": {"heldout": {"position_mm": {"before": 4.66, "after": 5.06}}}, "samples": {"train": 17},
+             "identifiability": {"estimated": 30}}  # the UR10 file with every parameter (docs/cli.md)
+    text = heldout_verdict(worse)
+    assert "no better than the nominal one" in text and "30 parameters from 17 samples" in text
+    better = dict(worse, rms={"heldout": {"position_mm": {"before": 5.0, "after": 0.5}}})
+    assert heldout_verdict(better).startswith("Held-out error reduced by 90%")
+    assert heldout_verdict(dict(worse, rms={"train": {}})) is None

@@ -107,6 +107,7 @@ def run_job(robot, data, holdout: float = 0.25, seed: int = 0, history: bool = T
         "per_sample_errors_mm": {split: {"before": None if v[0][0] is None else v[0][0].tolist(),
                                          "after": None if v[1][0] is None else v[1][0].tolist()} for split, v in errs.items()},
     }
+    summary["heldout_verdict"] = heldout_verdict(summary)
     return JobResult(fit, nominal, train, test, summary)
 
 
@@ -177,6 +178,19 @@ def _display(row):
     return row["change"] * k, None if row["std_error"] is None else row["std_error"] * k, unit
 
 
+def heldout_verdict(summary) -> str | None:
+    """One sentence on whether the calibration generalises to the held-out samples."""
+    h = summary["rms"].get("heldout", {}).get("position_mm")
+    if not h or h["before"] is None:
+        return None
+    if h["after"] >= h["before"]:
+        n, p = summary["samples"]["train"], summary["identifiability"]["estimated"]
+        return (f"The calibrated model is no better than the nominal one on held-out samples ({h['before']:.3g} -> "
+                f"{h['after']:.3g} mm): {p} parameters from {n} samples overfit or the remaining error is not geometric. "
+                "Try fewer parameters (e.g. --free '*.offset'), more samples, or `jaxcal diagnose`.")
+    return f"Held-out error reduced by {100 * (1 - h['after'] / h['before']):.0f}% ({h['before']:.3g} -> {h['after']:.3g} mm)."
+
+
 def job_markdown(summary, images: dict, robot_file: str | None) -> str:
     r = summary["rms"]
     s = summary["samples"]
@@ -197,6 +211,8 @@ def job_markdown(summary, images: dict, robot_file: str | None) -> str:
             row += f" {_fmt(r[split]['orientation_mrad']['before'])} | {_fmt(r[split]['orientation_mrad']['after'])} |"
         lines.append(row)
     t = summary["timings_s"]
+    verdict = heldout_verdict(summary)
+    lines += ["", verdict] if verdict else []
     lines += ["", f"Solver {summary['solver']}: {summary['iterations']} iterations, converged {summary['converged']}; "
               f"compile {t.get('compile_s', 0):.2f} s, run {t.get('run_s', 0) * 1e3:.1f} ms.", ""]
     ident = summary["identifiability"]
