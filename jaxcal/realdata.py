@@ -21,8 +21,9 @@ unchanged, with their licence, under `jaxcal/robots/data/real/` (see README.md t
 Settings for `calibration_free` / `cross_validate` (always with the unknown device frame and
 marker fitted too): "frames" (nothing of the robot: the fair "before"), "offsets" (joint
 offsets), "full" (every geometric parameter; `identify` estimates the base set), "prior"
-(every geometric parameter with the bias term mu ||(a - a0)/0.01||^2 of seed 004 eq 3.12; mu and,
-for pose data, the orientation weight chosen by inner cross-validation on the training folds only); "full+compliance" and
+(every geometric parameter with the bias term mu ||(a - a0)/0.01||^2 of seed 004 eq 3.12; mu
+chosen by inner cross-validation on the training folds only), "prior+weights" (the same with the
+orientation weight of pose data chosen by the inner cross-validation too); "full+compliance" and
 "prior+compliance" add a joint compliance under gravity per revolute joint (`with_compliance`).
 """
 
@@ -69,7 +70,7 @@ _SPECS = {
 SIGMA_ORIENTATION = {"talos": 1e-3, "ur10": 1e-3, "tiago": 1e-2}
 MU_GRID = tuple(10.0 ** k for k in range(-3, 3))
 SIGMA_FACTORS = (0.1, 0.3, 1.0)  # orientation weights tried by the inner CV of "prior" (pose data)
-SETTINGS = ("frames", "offsets", "full", "prior", "full+compliance", "prior+compliance")
+SETTINGS = ("frames", "offsets", "full", "prior", "prior+weights", "full+compliance", "prior+compliance")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -182,7 +183,7 @@ def with_compliance(real: RealData) -> RealData:
 
 
 def calibration_free(robot, setting: str) -> tuple[str, ...]:
-    """Robot parameter names estimated in a setting ("frames", "offsets", "full", "prior")."""
+    """Robot parameter names estimated in a setting ("frames", "offsets", "full" or "prior")."""
     if setting == "frames":
         return ()
     if setting == "offsets":
@@ -234,13 +235,14 @@ def _rms(x):
     return float(np.sqrt(np.mean(np.square(x))))
 
 
-def choose_prior(real: RealData, train, grid=MU_GRID, inner_folds: int = 4, seed: int = 1, **fit_options) -> dict:
-    """mu (and, for pose data, the orientation weight sigma_orientation among SIGMA_FACTORS x the
-    a-priori value) with the smallest inner cross-validated position RMS, using the training
-    samples `train` only: the outer held-out fold is never seen."""
+def choose_prior(real: RealData, train, grid=MU_GRID, weights: bool = False, inner_folds: int = 4, seed: int = 1,
+                 **fit_options) -> dict:
+    """mu (and with `weights`, for pose data, the orientation weight sigma_orientation among
+    SIGMA_FACTORS x the a-priori value) with the smallest inner cross-validated position RMS, using
+    the training samples `train` only: the outer held-out fold is never seen."""
     train = np.asarray(train)
     inner = fold_indices(len(train), inner_folds, seed)
-    if "sigma_orientation" in fit_options or real.data.device.kind != "pose":
+    if not weights or "sigma_orientation" in fit_options or real.data.device.kind != "pose":
         sigmas = [fit_options.pop("sigma_orientation", SIGMA_ORIENTATION[real.name])]
     else:
         sigmas = [SIGMA_ORIENTATION[real.name] * f for f in SIGMA_FACTORS]
@@ -271,11 +273,11 @@ def cross_validate(real: RealData, setting: str, folds: int = 5, seed: int = 0, 
     for held in fold_indices(n, folds, seed):
         train = np.setdiff1d(np.arange(n), held)
         options, mu = dict(fit_options), None
-        if setting == "prior":
-            chosen = choose_prior(real, train, grid, **fit_options)
+        if setting in ("prior", "prior+weights"):
+            chosen = choose_prior(real, train, grid, weights=setting == "prior+weights", **fit_options)
             mu, options["sigma_orientation"] = chosen["mu"], chosen["sigma_orientation"]
             mus.append(chosen)
-        fit = fit_on(real, setting, train, mu, **options)
+        fit = fit_on(real, setting.removesuffix("+weights"), train, mu, **options)
         compile_s += fit.timings["compile_s"]
         run_s += fit.timings["run_s"]
         pe, oe = sample_errors(fit, real, held)
@@ -296,6 +298,6 @@ def cross_validate(real: RealData, setting: str, folds: int = 5, seed: int = 0, 
         out.update(train_rms_deg=float(np.mean(train_ori)), heldout_rms_deg=_rms(np.concatenate(held_ori)))
     if held_pts:
         out["heldout_rms_3points_mm"] = _rms(np.concatenate(held_pts))
-    if setting == "prior":
+    if mus:
         out["chosen_per_fold"] = mus
     return out
