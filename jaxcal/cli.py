@@ -300,8 +300,12 @@ def _bench(args) -> int:
                 if os.path.isdir(_benchmarks_dir()) else []
             listing = ", ".join(avail) or "none: not a source checkout"
             return _fail(FileNotFoundError(f"{path}: no such benchmark (available: {listing})"))
-        sys.argv = [path] + list(args.script_args)
-        runpy.run_path(path, run_name="__main__")
+        saved_argv, saved_path = sys.argv, list(sys.path)
+        sys.argv, sys.path = [path] + list(args.script_args), [os.path.dirname(path)] + sys.path  # scripts import _common
+        try:
+            runpy.run_path(path, run_name="__main__")
+        finally:
+            sys.argv, sys.path[:] = saved_argv, saved_path
         return 0
     with _progress(not args.quiet) as prog:
         task = prog.add_task("quick benchmark (FK batch, identification)", total=2 * args.repeats)

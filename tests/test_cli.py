@@ -149,3 +149,13 @@ def test_heldout_verdict_flags_a_fit_that_does_not_generalise():
     better = dict(worse, rms={"heldout": {"position_mm": {"before": 5.0, "after": 0.5}}})
     assert heldout_verdict(better).startswith("Held-out error reduced by 90%")
     assert heldout_verdict(dict(worse, rms={"train": {}})) is None
+
+
+def test_bench_runs_a_repository_benchmark_script(capsys):
+    import sys
+
+    argv = list(sys.argv)
+    assert main(["bench", "--script", "fk", "--", "--max-n", "1000"]) == 0
+    out = capsys.readouterr().out
+    assert "jax Mcfg/s" in out and "     1000" in out  # one row, N = 1000, checked against numpy inside
+    assert sys.argv == argv
