@@ -116,7 +116,8 @@ def _calibrate(args) -> int:
             is_urdf = job["robot"].lower().endswith(".urdf")
             robot_file = f"{robot.name}_calibrated.{'urdf' if is_urdf else 'yaml'}"
             out = job["out"]
-            for name in ("results.json", "report.md", "errors_per_pose.png", "error_map.png", "convergence.png", robot_file):
+            outputs = ("results.json", "report.md", "report.html", "errors_per_pose.png", "error_map.png", "convergence.png")
+            for name in outputs + (robot_file,):
                 check_not_input(os.path.join(out, name), inputs)
             with _stage(prog, f"identifying {robot.name} on {len(data)} samples (compiles the solver on first use)"):
                 res = run_job(robot, data, holdout=job["holdout"], seed=job["seed"], solver=job["solver"],

@@ -47,6 +47,8 @@ def test_calibrate_builtin_robot(simulated, capsys):
     # standard errors are reported for every estimated parameter
     est = [p for p in res["parameters"] if p["status"] == "estimated"]
     assert est and all(p["std_error"] is not None and p["std_error"] > 0 for p in est)
+    html = (out / "report.html").read_text()
+    assert "<table>" in html and '<img src="error_map.png"' in html
     report = (out / "report.md").read_text()
     for section in ("Errors before and after", "Identifiability", "Parameters", "errors_per_pose.png", "error_map.png"):
         assert section in report

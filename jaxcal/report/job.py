@@ -1,5 +1,5 @@
 """The calibration job behind `jaxcal calibrate`: fit on a training split, check on held-out data,
-and one Markdown + PNG report with the numbers a reviewer asks for.
+and one Markdown + PNG report (and the same as HTML) with the numbers a reviewer asks for.
 
 `run_job` computes everything in memory; `write_job` writes the files, each atomically, only after
 every computation succeeded (so a failure leaves no partial output).
@@ -237,8 +237,23 @@ def job_markdown(summary, images: dict, robot_file: str | None) -> str:
     return "\n".join(lines)
 
 
+_CSS = ("body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}"
+        "table{border-collapse:collapse;font-size:0.9em}td,th{border:1px solid #ccc;padding:2px 8px;text-align:right}"
+        "td:first-child,th:first-child{text-align:left}img{max-width:100%}code{background:#f4f4f4}")
+
+
+def job_html(markdown_text: str, title: str) -> str:
+    """The Markdown report as one self-contained HTML page (images stay beside it), rendered with
+    markdown-it-py (a dependency of rich)."""
+    from markdown_it import MarkdownIt
+
+    body = MarkdownIt("commonmark").enable("table").render(markdown_text)
+    return (f"<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>{title}</title><style>{_CSS}</style></head>"
+            f"<body>\n{body}</body></html>\n")
+
+
 def write_job(out: str, job: JobResult, write_robot=None, robot_file: str | None = None) -> list[str]:
-    """Write results.json, report.md, the plots and (via `write_robot(path)`) the calibrated robot.
+    """Write results.json, report.md, report.html, the plots and (via `write_robot(path)`) the calibrated robot.
 
     Everything is first written to a hidden staging folder inside `out` and moved into place only
     when all files exist, so a failure leaves no partial output (the staging folder is removed)."""
@@ -266,12 +281,14 @@ def _write_all(folder, job, write_robot, robot_file):
     if write_robot is not None and robot_file:
         os.chmod(write_robot(os.path.join(folder, robot_file)), 0o644)
         names.append(robot_file)
-    names += ["report.md", "results.json"]
+    names += ["report.md", "report.html", "results.json"]
     summary = dict(job.summary, files=names)
-    write_text_atomic(os.path.join(folder, "report.md"), job_markdown(summary, images, robot_file))
+    text = job_markdown(summary, images, robot_file)
+    write_text_atomic(os.path.join(folder, "report.md"), text)
+    write_text_atomic(os.path.join(folder, "report.html"), job_html(text, f"Calibration report: {summary['robot']}"))
     write_json_atomic(os.path.join(folder, "results.json"), summary)
     return names
 
 
 __all__ = ["JobResult", "identifiability_summary", "job_markdown", "parameter_rows", "plot_error_map",
-           "plot_errors_per_pose", "run_job", "write_job"]
+           "plot_errors_per_pose", "job_html", "run_job", "write_job"]
