@@ -65,10 +65,24 @@ def table(report: dict) -> str:
     return "\n".join(lines)
 
 
+def markdown(report: dict) -> str:
+    """The results table of docs/real-data.md."""
+    lines = ["| data | setting | samples | parameters | train RMS mm | held-out RMS mm | held-out deg | FIGAROH held-out "
+             "| compile s | fit s / fold |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for d in report["datasets"]:
+        for r in d["results"]:
+            deg = f"{r['heldout_rms_deg']:.2f}" if "heldout_rms_deg" in r else ""
+            lines.append(f"| {d['dataset']} | {r['setting']} | {r['samples']} | {r['parameters_estimated']} | "
+                         f"{r['train_rms_mm']:.2f} | **{r['heldout_rms_mm']:.2f}** | {deg} | "
+                         f"{figaroh_reference(d['figaroh'], r['setting'])} | {r['compile_s']:.1f} | {r['fit_run_s_per_fold']:.3f} |")
+    return "\n".join(lines)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--datasets", nargs="+", default=list(jc.realdata.available()))
     ap.add_argument("--settings", nargs="+", default=None, help=f"any of {jc.realdata.SETTINGS}")
+    ap.add_argument("--markdown", action="store_true", help="also print the table of docs/real-data.md")
     ap.add_argument("--merge", nargs="+", default=None, help="join these per-dataset reports instead of running")
     ap.add_argument("--folds", type=int, default=5)
     ap.add_argument("--out", default="benchmarks/results/realdata.json")
@@ -80,6 +94,8 @@ def main(argv=None):
         report = {"machine": platform.processor() or platform.machine(), "jax": jax.__version__, "folds": args.folds,
                   "datasets": [run_dataset(n, args.folds, args.settings) for n in args.datasets]}
     print(table(report))
+    if args.markdown:
+        print(markdown(report))
     write_text_atomic(args.out, json.dumps(report, indent=1))
     print(f"wrote {args.out}")
 

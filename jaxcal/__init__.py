@@ -22,5 +22,5 @@ from jaxcal.robots.io import load_robot, save_robot
 
 __version__ = "0.1.0"
 __all__ = ["DataError", "Dataset", "FitResult", "Pose", "Robot", "forward", "ga", "identifiable", "identify", "make_device",
-           "load_robot", "measure", "perturb", "realdata", "random_configurations", "robots", "save_robot", "simulate",
+           "load_robot", "measure", "perturb", "random_configurations", "realdata", "robots", "save_robot", "simulate",
            "uncertainty"]

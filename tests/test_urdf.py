@@ -216,6 +216,10 @@ def test_export_refuses_input_and_non_urdf_robots(tmp_path):
         save_urdf(rb, src)
     with pytest.raises(URDFError, match="not loaded from a URDF"):
         save_urdf(jc.robots.get("mrr1"), str(tmp_path / "mrr1.urdf"))
+    with pytest.raises(jc.robots.RobotFileError, match="saved as .urdf, not YAML"):
+        jc.save_robot(rb, str(tmp_path / "arm.yaml"))
+    out = jc.save_robot(rb, str(tmp_path / "copy.urdf"))  # dispatches to save_urdf
+    assert jc.load_robot(out, base="world", tip="tool").names == rb.names
 
 
 @pytest.mark.slow

@@ -177,6 +177,8 @@ def save_robot(robot, path: str, a=None) -> str:
         from jaxcal.robots.urdf import save_urdf
 
         return save_urdf(robot, path, a)
+    if robot.bodies[0].convention not in _COLUMNS:
+        raise RobotFileError(f"{path}: a robot of the {robot.bodies[0].convention!r} convention is saved as .urdf, not YAML")
     text = yaml.safe_dump(robot_to_dict(robot, a), sort_keys=False, default_flow_style=None)
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
