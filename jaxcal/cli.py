@@ -103,6 +103,7 @@ def _calibrate(args) -> int:
     import jaxcal as jc
     from jaxcal.io_atomic import check_not_input
     from jaxcal.report.job import heldout_verdict, run_job, write_job
+    from jaxcal.robots.io import save_robot
 
     try:
         job = job_options(args)
@@ -113,8 +114,7 @@ def _calibrate(args) -> int:
                 data = jc.Dataset.from_csv(job["data"], joints=job.get("joints") or robot.joint_names, device=job.get("device"),
                                            marker=job.get("marker"), length_unit=job.get("length_unit"),
                                            angle_unit=job.get("angle_unit"), prismatic=prismatic_joints(robot))
-            is_urdf = job["robot"].lower().endswith(".urdf")
-            robot_file = f"{robot.name}_calibrated.{'urdf' if is_urdf else 'yaml'}"
+            robot_file = calibrated_robot_file(robot)
             out = job["out"]
             outputs = ("results.json", "report.md", "report.html", "errors_per_pose.png", "error_map.png", "convergence.png")
             for name in outputs + (robot_file,):
@@ -125,7 +125,7 @@ def _calibrate(args) -> int:
                               known=tuple(job.get("known") or ()), sigma_position=job["sigma_position"],
                               sigma_orientation=job["sigma_orientation"], max_steps=job["max_steps"])
             with _stage(prog, f"writing the report to {out}"):
-                write_job(out, res, _robot_writer(robot, res.fit.a, is_urdf), robot_file)
+                write_job(out, res, lambda path: save_robot(robot, path, res.fit.a), robot_file)
     except _input_errors() as exc:
         return _fail(exc)
     r = res.summary["rms"]
@@ -157,14 +157,10 @@ def expand_free(patterns, robot):
     return out
 
 
-def _robot_writer(robot, a, is_urdf):
-    if is_urdf:
-        from jaxcal.robots.urdf import save_urdf
-
-        return lambda path: save_urdf(robot, path, a)
-    from jaxcal.robots.io import save_robot
-
-    return lambda path: save_robot(robot, path, a)
+def calibrated_robot_file(robot) -> str:
+    """File name of the calibrated robot: URDF for robots that came from a URDF (a file or a
+    URDF-based built-in), else the seed-table YAML."""
+    return f"{robot.name}_calibrated.{'urdf' if robot.bodies[0].convention == 'urdf' else 'yaml'}"
 
 
 # -- identifiable --------------------------------------------------------------------------------------

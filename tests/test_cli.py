@@ -161,3 +161,12 @@ def test_bench_runs_a_repository_benchmark_script(capsys):
     out = capsys.readouterr().out
     assert "jax Mcfg/s" in out and "     1000" in out  # one row, N = 1000, checked against numpy inside
     assert sys.argv == argv
+
+
+def test_calibrated_robot_keeps_the_input_format():
+    from jaxcal.cli import calibrated_robot_file
+
+    assert calibrated_robot_file(jc.robots.get("stanford")) == "stanford_calibrated.yaml"
+    urdf_builtins = [n for n in jc.robots.available() if jc.robots.get(n).bodies[0].convention == "urdf"]
+    for name in urdf_builtins:  # built-ins read from a URDF are written back as URDF
+        assert calibrated_robot_file(jc.robots.get(name)).endswith(".urdf")
