@@ -1,11 +1,323 @@
-"""Command line: `jaxcal demo`, `jaxcal --help`."""
+"""Command line: `jaxcal calibrate | identifiable | simulate | diagnose | bench | demo` (docs/cli.md).
+
+Every subcommand is a function of parsed arguments returning an exit code; bad input (robot
+file, CSV, config) prints one `error:` line naming the file/line/field and returns 2. Outputs
+go to files written atomically, never over an input.
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import sys
+import time
+
+from jaxcal.fit.csvfile import prismatic_joints
+
+EXIT_BAD_INPUT = 2
 
 
+def _console():
+    from rich.console import Console
+
+    return Console(stderr=True)
+
+
+@contextlib.contextmanager
+def _progress(enabled: bool = True):
+    """A rich progress display on stderr (spinners for stages, bars for counted work)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    with Progress(SpinnerColumn(), TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TimeElapsedColumn(), console=_console(), transient=True, disable=not enabled) as prog:
+        yield prog
+
+
+@contextlib.contextmanager
+def _stage(prog, text):
+    task = prog.add_task(text, total=1)
+    yield
+    prog.update(task, completed=1)
+
+
+# -- shared loading --------------------------------------------------------------------------------
+def load_robot_arg(spec: str, base=None, tip=None):
+    """A built-in robot name, a robot YAML or a URDF (with base/tip links)."""
+    import jaxcal as jc
+
+    if spec in jc.robots.builtin.available():
+        return jc.robots.get(spec)
+    if not os.path.exists(spec):
+        raise FileNotFoundError(f"{spec}: no such robot file, and not a built-in robot ({', '.join(jc.robots.builtin.available())})")
+    if spec.lower().endswith(".urdf"):
+        return jc.load_robot(spec, base=base, tip=tip)
+    return jc.load_robot(spec)
+
+
+def _input_errors():
+    """Exception types that mean bad input (reported as one line, exit code 2)."""
+    import yaml
+
+    from jaxcal.config import ConfigError
+    from jaxcal.fit.data import DataError
+    from jaxcal.io_atomic import OutputError
+    from jaxcal.robots.io import RobotFileError
+
+    return (ConfigError, DataError, OutputError, RobotFileError, FileNotFoundError, KeyError, yaml.YAMLError)
+
+
+def _fail(exc) -> int:
+    msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+    _console().print(f"[bold red]error:[/] {msg}", highlight=False, markup=True)
+    return EXIT_BAD_INPUT
+
+
+# -- calibrate ---------------------------------------------------------------------------------------
+DEFAULTS = {"holdout": 0.25, "seed": 0, "solver": "lm", "out": "calib-output", "sigma_position": 1e-3,
+            "sigma_orientation": 1e-3, "max_steps": 200}
+JOB_KEYS = ("robot", "data", "base", "tip", "out", "device", "marker", "joints", "length_unit", "angle_unit", "holdout",
+            "seed", "solver", "free", "known", "sigma_position", "sigma_orientation", "max_steps")
+
+
+def job_options(args) -> dict:
+    """Defaults, then the config file, then the command-line options (which win)."""
+    from jaxcal.config import ConfigError, load_config
+
+    job = dict(DEFAULTS)
+    if args.config:
+        job.update(load_config(args.config))
+    for key in JOB_KEYS:
+        v = getattr(args, key, None)
+        if v is not None:
+            job[key] = v
+    for key in ("robot", "data"):
+        if not job.get(key):
+            raise ConfigError(f"calibrate: no {key} given (argument or '{key}:' in the config file)")
+    if not 0 <= job["holdout"] < 1:
+        raise ConfigError(f"calibrate: --holdout must be in [0, 1), got {job['holdout']}")
+    return job
+
+
+def _calibrate(args) -> int:
+    import jaxcal as jc
+    from jaxcal.io_atomic import check_not_input
+    from jaxcal.report.job import heldout_verdict, run_job, write_job
+    from jaxcal.robots.io import save_robot
+
+    try:
+        job = job_options(args)
+        inputs = [job["robot"], job["data"], args.config]
+        with _progress(not args.quiet) as prog:
+            with _stage(prog, "loading robot and data"):
+                robot = load_robot_arg(job["robot"], job.get("base"), job.get("tip"))
+                data = jc.Dataset.from_csv(job["data"], joints=job.get("joints") or robot.joint_names, device=job.get("device"),
+                                           marker=job.get("marker"), length_unit=job.get("length_unit"),
+                                           angle_unit=job.get("angle_unit"), prismatic=prismatic_joints(robot))
+            robot_file = calibrated_robot_file(robot)
+            out = job["out"]
+            outputs = ("results.json", "report.md", "report.html", "errors_per_pose.png", "error_map.png", "convergence.png")
+            for name in outputs + (robot_file,):
+                check_not_input(os.path.join(out, name), inputs)
+            with _stage(prog, f"identifying {robot.name} on {len(data)} samples (compiles the solver on first use)"):
+                res = run_job(robot, data, holdout=job["holdout"], seed=job["seed"], solver=job["solver"],
+                              free=expand_free(job.get("free"), robot),
+                              known=tuple(job.get("known") or ()), sigma_position=job["sigma_position"],
+                              sigma_orientation=job["sigma_orientation"], max_steps=job["max_steps"])
+            with _stage(prog, f"writing the report to {out}"):
+                write_job(out, res, lambda path: save_robot(robot, path, res.fit.a), robot_file)
+    except _input_errors() as exc:
+        return _fail(exc)
+    r = res.summary["rms"]
+    print(res.fit.report())
+    if "heldout" in r:
+        h = r["heldout"]["position_mm"]
+        print(f"held-out ({res.summary['samples']['heldout']} samples): position RMS {h['before']:.4g} mm (nominal) -> "
+              f"{h['after']:.4g} mm (calibrated)")
+    verdict = heldout_verdict(res.summary)
+    if verdict:
+        print(verdict)
+    print(f"report: {os.path.join(out, 'report.md')}; calibrated robot: {os.path.join(out, robot_file)}")
+    return 0
+
+
+def expand_free(patterns, robot):
+    """Robot parameter names matching names or shell patterns (`*.offset`: joint offsets only);
+    a pattern that matches nothing is an error naming it."""
+    import fnmatch
+
+    if patterns is None:
+        return None
+    out = []
+    for pat in patterns:
+        hits = [n for n in robot.names if fnmatch.fnmatchcase(n, pat)]
+        if not hits:
+            raise KeyError(f"--free / free: {pat!r} matches no parameter of {robot.name} (names look like {robot.names[0]!r})")
+        out += [n for n in hits if n not in out]
+    return out
+
+
+def calibrated_robot_file(robot) -> str:
+    """File name of the calibrated robot: URDF for robots that came from a URDF (a file or a
+    URDF-based built-in), else the seed-table YAML."""
+    return f"{robot.name}_calibrated.{'urdf' if robot.bodies[0].convention == 'urdf' else 'yaml'}"
+
+
+# -- identifiable --------------------------------------------------------------------------------------
+def _identifiable(args) -> int:
+    import jaxcal as jc
+    from jaxcal.io_atomic import write_json_atomic
+
+    try:
+        robot = load_robot_arg(args.robot, args.base, args.tip)
+        with _progress(not args.quiet) as prog, _stage(prog, f"observation matrix of {args.method} ({args.n} samples)"):
+            res = jc.identifiable(robot, args.method, n_configs=args.n, seed=args.seed, include_gains=not args.no_gains)
+    except _input_errors() + (ValueError,) as exc:
+        return _fail(exc)
+    print(f"{robot.name}, method {res.method}: {res.count} identifiable parameters of {robot.n_params}")
+    print(f"base set: {', '.join(res.names)}")
+    if res.extra:
+        print(f"also identified (method unknowns): {', '.join(res.extra)}")
+    if res.no_effect:
+        print(f"no effect: {', '.join(res.no_effect)}")
+    for rel in res.regroup:
+        print(f"regrouped: {rel}")
+    print("observability: " + ", ".join(f"{k} {v:.4g}" for k, v in res.indices.items()))
+    if args.json:
+        write_json_atomic(args.json, {"robot": robot.name, "method": res.method, "count": res.count, "names": res.names,
+                                      "extra": res.extra, "no_effect": res.no_effect, "regrouped": res.regrouped,
+                                      "regroup": res.regroup, "indices": res.indices, "condition": res.condition})
+    return 0
+
+
+# -- simulate ---------------------------------------------------------------------------------------------
+def _simulate(args) -> int:
+    import numpy as np
+
+    import jaxcal as jc
+    from jaxcal.io_atomic import check_not_input, write_json_atomic
+
+    try:
+        robot = load_robot_arg(args.robot, args.base, args.tip)
+        check_not_input(args.out, [args.robot])
+        if args.truth:
+            check_not_input(args.truth, [args.robot])
+        a_true = jc.perturb(robot, {"length": args.perturb_mm * 1e-3, "angle": args.perturb_mrad * 1e-3}, seed=args.seed)
+        q = jc.random_configurations(robot, args.n, seed=args.seed + 1, margin=0.05)
+        noise = {"position": args.noise_mm * 1e-3, "orientation": args.noise_mrad * 1e-3}
+        data = jc.simulate(robot, a_true, q, args.device, noise=noise, seed=args.seed + 2)
+        if args.temperature:
+            data.covariates["temperature"] = 20.0 + np.random.default_rng(args.seed).uniform(0, 5, len(data))
+        data.to_csv(args.out, length_unit=args.length_unit, angle_unit=args.angle_unit, prismatic=prismatic_joints(robot))
+        if args.truth:
+            write_json_atomic(args.truth, {"robot": robot.name, "names": robot.names, "a_true": np.asarray(a_true),
+                                           "noise": noise, "seed": args.seed})
+    except _input_errors() + (ValueError,) as exc:
+        return _fail(exc)
+    print(f"wrote {len(data)} simulated {args.device} samples of {robot.name} to {args.out}")
+    return 0
+
+
+# -- diagnose -----------------------------------------------------------------------------------------------
+def _diagnose(args) -> int:
+    import jaxcal as jc
+    from jaxcal.io_atomic import check_not_input, write_json_atomic
+
+    try:
+        import jaxcal.gap  # noqa: F401
+    except ImportError as exc:
+        _console().print(f"[bold red]error:[/] `jaxcal diagnose` needs the gap-diagnosis module jaxcal.gap, "
+                         f"which is not available in this installation ({exc})")
+        return 1
+    try:
+        robot = load_robot_arg(args.robot, args.base, args.tip)
+        data = jc.Dataset.from_csv(args.data, joints=robot.joint_names, device=args.device, marker=args.marker,
+                                   length_unit=args.length_unit, angle_unit=args.angle_unit, prismatic=prismatic_joints(robot))
+        check_not_input(os.path.join(args.out, "diagnosis.json"), [args.robot, args.data])
+        with _progress(not args.quiet) as prog, _stage(prog, f"diagnosing the sim-to-real gap of {robot.name}"):
+            d = jc.gap.diagnose(robot, data)
+            payload = d.to_dict()
+    except _input_errors() as exc:
+        return _fail(exc)
+    print(d.report())
+    os.makedirs(args.out, exist_ok=True)
+    d.plot(args.out)
+    write_json_atomic(os.path.join(args.out, "diagnosis.json"), payload)
+    return 0
+
+
+# -- bench ------------------------------------------------------------------------------------------------
+def quick_bench(robot_name: str = "stanford", n_fk: int = 10000, n_fit: int = 100, repeats: int = 5, progress=None) -> dict:
+    """Built-in timing: batched forward kinematics and one identification; compile apart, medians."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxcal as jc
+
+    rb = jc.robots.get(robot_name)
+    q = jnp.asarray(jc.random_configurations(rb, n_fk, seed=0))
+    fk = jax.jit(lambda a, q: jc.forward(rb, a, q).p)
+    t = time.perf_counter()
+    fk_exe = fk.lower(rb.nominal, q).compile()
+    fk_compile = time.perf_counter() - t
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(fk_exe(rb.nominal, q))
+        times.append(time.perf_counter() - t)
+        if progress:
+            progress()
+    data = jc.simulate(rb, jc.perturb(rb, 1e-3, seed=1), jc.random_configurations(rb, n_fit, seed=2), "position", noise=1e-5)
+    fits = []
+    for _ in range(repeats):
+        fits.append(jc.identify(rb, data, sigma_position=1e-5))
+        if progress:
+            progress()
+    return {"robot": robot_name, "fk": {"n": n_fk, "compile_s": fk_compile, "median_s": float(np.median(times)),
+                                        "configs_per_s": float(n_fk / np.median(times))},
+            "identify": {"samples": n_fit, "parameters": len(fits[0].estimated), "compile_s": fits[0].timings["compile_s"],
+                         "median_run_s": float(np.median([f.timings["run_s"] for f in fits[1:]] or [fits[0].timings["run_s"]])),
+                         "rms_after_mm": fits[-1].rms_after}}
+
+
+def _benchmarks_dir():
+    return os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks")
+
+
+def _bench(args) -> int:
+    import runpy
+
+    from jaxcal.io_atomic import write_json_atomic
+
+    if args.script:
+        path = os.path.join(_benchmarks_dir(), args.script if args.script.endswith(".py") else args.script + ".py")
+        if not os.path.exists(path):
+            avail = sorted(f[:-3] for f in os.listdir(_benchmarks_dir()) if f.endswith(".py") and not f.startswith("_")) \
+                if os.path.isdir(_benchmarks_dir()) else []
+            listing = ", ".join(avail) or "none: not a source checkout"
+            return _fail(FileNotFoundError(f"{path}: no such benchmark (available: {listing})"))
+        saved_argv, saved_path = sys.argv, list(sys.path)
+        sys.argv, sys.path = [path] + list(args.script_args), [os.path.dirname(path)] + sys.path  # scripts import _common
+        try:
+            runpy.run_path(path, run_name="__main__")
+        finally:
+            sys.argv, sys.path[:] = saved_argv, saved_path
+        return 0
+    with _progress(not args.quiet) as prog:
+        task = prog.add_task("quick benchmark (FK batch, identification)", total=2 * args.repeats)
+        res = quick_bench(args.robot, args.n_fk, args.n_fit, args.repeats, progress=lambda: prog.advance(task))
+    fk, fi = res["fk"], res["identify"]
+    print(f"{res['robot']}: forward kinematics of {fk['n']} configurations: compile {fk['compile_s']:.2f} s, "
+          f"run {fk['median_s'] * 1e3:.2f} ms (median), {fk['configs_per_s'] / 1e6:.2f} M configs/s")
+    print(f"identification ({fi['samples']} samples, {fi['parameters']} parameters): compile {fi['compile_s']:.2f} s, "
+          f"run {fi['median_run_s'] * 1e3:.1f} ms (median), RMS after {fi['rms_after_mm']:.4f} mm")
+    if args.json:
+        write_json_atomic(args.json, res)
+    return 0
+
+
+# -- demo -------------------------------------------------------------------------------------------------
 def _demo(args) -> int:
     from jaxcal.demo import run
 
@@ -13,12 +325,98 @@ def _demo(args) -> int:
     return 0
 
 
+# -- parser -------------------------------------------------------------------------------------------------
+def _robot_args(p):
+    p.add_argument("robot", help="built-in robot name, robot YAML or URDF")
+    p.add_argument("--base", help="URDF: first link of the chain")
+    p.add_argument("--tip", help="URDF: last link of the chain")
+
+
+def _data_args(p):
+    p.add_argument("--device", choices=("position", "pose"), help="reading type (default: from the CSV columns)")
+    p.add_argument("--marker", help="marker number when the CSV has x1.., x2.. columns (default: the first)")
+    p.add_argument("--length-unit", dest="length_unit", choices=("m", "mm"), help="unit of x, y, z (default: header line, else m)")
+    p.add_argument("--angle-unit", dest="angle_unit", choices=("rad", "deg"),
+                   help="unit of joint angles and rotation vectors (default: header line, else rad)")
+
+
+def _quiet(p):
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jaxcal", description="Differentiable robot calibration in JAX.")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
-    d = sub.add_parser("demo", help="calibrate MRR-1 and the Stanford arm on simulated data, print a report, write plots")
-    d.add_argument("--out", default="demo-output", help="folder for the report and plots (default: demo-output)")
-    d.set_defaults(func=_demo)
+
+    c = sub.add_parser("calibrate", help="identify a robot from a measurement CSV; write results, report, calibrated robot")
+    c.add_argument("robot", nargs="?", help="built-in robot name, robot YAML or URDF (or 'robot:' in --config)")
+    c.add_argument("data", nargs="?", help="measurement CSV (docs/file-formats.md) (or 'data:' in --config)")
+    c.add_argument("--config", help="YAML or TOML job file (keys as these options; the options given here win)")
+    c.add_argument("--base", help="URDF: first link of the chain")
+    c.add_argument("--tip", help="URDF: last link of the chain")
+    c.add_argument("--out", help="output folder (default calib-output)")
+    _data_args(c)
+    c.add_argument("--holdout", type=float, help="fraction of samples held out of the fit (default 0.25)")
+    c.add_argument("--seed", type=int, help="seed of the held-out split (default 0)")
+    c.add_argument("--solver", choices=("lm", "lm_normal", "gn", "gn_normal", "dogleg", "bfgs"))
+    c.add_argument("--free", nargs="+", help="robot parameters to estimate, names or patterns such as '*.offset' "
+                   "(default: all free; the base set of them is identified)")
+    c.add_argument("--known", nargs="+", help="device parameters (or prefixes dev, tool) taken as known")
+    c.add_argument("--sigma-position", dest="sigma_position", type=float, help="position noise in m (residual weight)")
+    c.add_argument("--sigma-orientation", dest="sigma_orientation", type=float, help="orientation noise in rad")
+    c.add_argument("--max-steps", dest="max_steps", type=int)
+    _quiet(c)
+    c.set_defaults(func=_calibrate)
+
+    i = sub.add_parser("identifiable", help="identifiable parameters of a robot for a calibration method (GECARO §3)")
+    _robot_args(i)
+    i.add_argument("--method", default="position", help="position, location, point_link, frame_link, plane1_known, "
+                   "plane1_unknown, plane2_known, plane2_unknown, distance (default position)")
+    i.add_argument("--n", type=int, default=60, help="number of generated samples (default 60)")
+    i.add_argument("--seed", type=int, default=0)
+    i.add_argument("--no-gains", action="store_true", help="do not identify transmission gains")
+    i.add_argument("--json", help="also write the result as JSON here")
+    _quiet(i)
+    i.set_defaults(func=_identifiable)
+
+    s = sub.add_parser("simulate", help="write a CSV of simulated measurements of a perturbed robot")
+    _robot_args(s)
+    s.add_argument("--out", required=True, help="CSV file to write")
+    s.add_argument("--n", type=int, default=100, help="number of samples (default 100)")
+    s.add_argument("--device", choices=("position", "pose"), default="position")
+    s.add_argument("--perturb-mm", dest="perturb_mm", type=float, default=1.0, help="std of the length errors (default 1 mm)")
+    s.add_argument("--perturb-mrad", dest="perturb_mrad", type=float, default=2.0, help="std of the angle errors (default 2 mrad)")
+    s.add_argument("--noise-mm", dest="noise_mm", type=float, default=0.02, help="measurement noise std (default 0.02 mm)")
+    s.add_argument("--noise-mrad", dest="noise_mrad", type=float, default=0.02, help="orientation noise std (default 0.02 mrad)")
+    s.add_argument("--length-unit", dest="length_unit", choices=("m", "mm"), default="m")
+    s.add_argument("--angle-unit", dest="angle_unit", choices=("rad", "deg"), default="rad")
+    s.add_argument("--temperature", action="store_true", help="add a temperature covariate column")
+    s.add_argument("--truth", help="also write the true parameters as JSON here")
+    s.add_argument("--seed", type=int, default=0)
+    s.set_defaults(func=_simulate)
+
+    d = sub.add_parser("diagnose", help="diagnose the sim-to-real gap left after calibration (jaxcal.gap)")
+    _robot_args(d)
+    d.add_argument("data", help="measurement CSV")
+    d.add_argument("--out", default="diagnosis-output", help="output folder (default diagnosis-output)")
+    _data_args(d)
+    _quiet(d)
+    d.set_defaults(func=_diagnose)
+
+    b = sub.add_parser("bench", help="quick built-in timing, or run one of the repository's benchmarks/ scripts")
+    b.add_argument("--script", help="benchmark script in benchmarks/ (fk, identify, ga, ...); arguments after --")
+    b.add_argument("script_args", nargs="*", help="arguments passed to the script")
+    b.add_argument("--robot", default="stanford")
+    b.add_argument("--n-fk", dest="n_fk", type=int, default=10000)
+    b.add_argument("--n-fit", dest="n_fit", type=int, default=100)
+    b.add_argument("--repeats", type=int, default=5)
+    b.add_argument("--json", help="also write the timings as JSON here")
+    _quiet(b)
+    b.set_defaults(func=_bench)
+
+    m = sub.add_parser("demo", help="calibrate MRR-1 and the Stanford arm on simulated data, print a report, write plots")
+    m.add_argument("--out", default="demo-output", help="folder for the report and plots (default: demo-output)")
+    m.set_defaults(func=_demo)
     return p
 
 

@@ -2,16 +2,10 @@
 
 from __future__ import annotations
 
-import csv
-import os
-
 import numpy as np
 
+from jaxcal.fit.csvfile import DataError, UnitWarning  # noqa: F401  (re-exported)
 from jaxcal.measure.devices import Device, make_device
-
-
-class DataError(ValueError):
-    """Bad input data; the message names the file, row, column or sample."""
 
 
 def _as_device(device) -> Device:
@@ -68,6 +62,7 @@ class Dataset:
             self.covariates[k] = v
         self.joint_names = tuple(joint_names) if joint_names is not None else None
         self.source = source
+        self.units = {"length": "m", "angle": "rad"}  # the units the values were given in (SI inside)
 
     def __len__(self):
         return len(self.q)
@@ -78,8 +73,10 @@ class Dataset:
 
     def subset(self, idx) -> "Dataset":
         idx = np.asarray(idx)
-        return Dataset(self.q[idx], self.y[idx], self.device, {k: v[idx] for k, v in self.covariates.items()},
-                       joint_names=self.joint_names, source=self.source)
+        out = Dataset(self.q[idx], self.y[idx], self.device, {k: v[idx] for k, v in self.covariates.items()},
+                      joint_names=self.joint_names, source=self.source)
+        out.units = dict(self.units)
+        return out
 
     def split(self, fraction=0.8, seed=0):
         """(train, held-out) random split."""
@@ -88,49 +85,79 @@ class Dataset:
         return self.subset(np.sort(perm[:k])), self.subset(np.sort(perm[k:]))
 
     @classmethod
-    def from_csv(cls, path, joints, device="position", position_columns=("x", "y", "z"),
-                 length_unit="m", angle_unit="rad", covariates=(), delimiter=","):
-        """Read a CSV with a header row: joint columns `joints`, the reading columns and covariates.
+    def from_csv(cls, path, joints=None, device=None, position_columns=None, length_unit=None, angle_unit=None,
+                 covariates=(), delimiter=",", marker=None, check_units=True, prismatic=()):
+        """Read a measurement CSV (layout in `jaxcal.fit.csvfile` and docs/file-formats.md).
 
-        Position readings come from `position_columns` (one marker); lengths are converted from
-        `length_unit` ("m" or "mm") and joint angles from `angle_unit` ("rad" or "deg") to SI.
+        joints: the joint columns in the order of q (default: every column that is not a
+        measurement or a covariate, in file order; pass `robot.joint_names` to check them).
+        device: "position" or "pose" (default: "pose" when the marker has orientation columns).
+        marker: which marker's columns to read when there are several (`x1..`, `x2..`; default the first).
+        length_unit ("m"/"mm"), angle_unit ("rad"/"deg"): override the file's `# units:` line; default SI.
+        prismatic: joint columns that are lengths (in the length unit), added to those of a `# prismatic:`
+        header line; `csvfile.prismatic_joints(robot)` lists a robot's.
+        check_units: raise (or warn) on values that look like another unit (see `csvfile.check_*_units`).
+        Errors name the file, the 1-based line and the column.
         """
-        scale = {"m": 1.0, "mm": 1e-3}
-        if length_unit not in scale:
+        from jaxcal.fit import csvfile as cf
+
+        path = str(path)
+        if length_unit is not None and length_unit not in cf.LENGTH_SCALE:
             raise DataError(f"{path}: length_unit must be 'm' or 'mm', got {length_unit!r}")
-        if angle_unit not in ("rad", "deg"):
+        if angle_unit is not None and angle_unit not in cf.ANGLE_SCALE:
             raise DataError(f"{path}: angle_unit must be 'rad' or 'deg', got {angle_unit!r}")
-        if not os.path.exists(path):
-            raise DataError(f"{path}: no such file")
-        with open(path, newline="") as fh:
-            rows = list(csv.reader(fh, delimiter=delimiter))
-        if not rows:
-            raise DataError(f"{path}: empty file")
-        header = [h.strip() for h in rows[0]]
-        need = list(joints) + list(position_columns) + list(covariates)
-        missing = [c for c in need if c not in header]
-        if missing:
-            raise DataError(f"{path}: missing column(s) {missing}; header has {header}")
-        values = []
-        for lineno, row in enumerate(rows[1:], start=2):
-            if not row or all(not c.strip() for c in row):
-                continue
-            if len(row) != len(header):
-                raise DataError(f"{path}, line {lineno}: {len(row)} fields, header has {len(header)}")
-            rec = []
-            for c in need:
-                text = row[header.index(c)].strip()
-                try:
-                    v = float(text)
-                except ValueError:
-                    raise DataError(f"{path}, line {lineno}, column {c!r}: not a number: {text!r}") from None
-                if not np.isfinite(v):
-                    raise DataError(f"{path}, line {lineno}, column {c!r}: non-finite value {text!r}")
-                rec.append(v)
-            values.append(rec)
-        arr = np.array(values, float).reshape(-1, len(need))
-        nj, npos = len(joints), len(position_columns)
-        q = arr[:, :nj] * (np.pi / 180.0 if angle_unit == "deg" else 1.0)
-        y = arr[:, nj:nj + npos] * scale[length_unit]
-        cov = {c: arr[:, nj + npos + i] for i, c in enumerate(covariates)}
-        return cls(q=q, y=y, device=device, covariates=cov, joint_names=joints, source=str(path))
+        head = cf.read_table(path, delimiter, header_only=True)  # the columns first, then the rows
+        kind = None if device is None else _as_device(device).kind
+        lay = cf.find_layout(head.header, path, joints, position_columns, marker, covariates, orientation=kind != "position")
+        if kind == "pose" and lay.orientation is None:
+            raise DataError(f"{path}: device 'pose' needs orientation columns "
+                            "(phix, phiy, phiz / rvx, rvy, rvz / qw, qx, qy, qz / r11..r33)")
+        if kind not in (None, "position", "pose"):
+            raise DataError(f"{path}: CSV readings are positions or poses, not {kind!r}")
+        cols = lay.joints + lay.position + lay.orientation_columns + list(lay.covariates.values())
+        tab = cf.read_table(path, delimiter, needed=cols)
+        length = cf.resolve_unit("length", length_unit, tab.units.get("length"), path)
+        angle = cf.resolve_unit("angle", angle_unit, tab.units.get("angle"), path)
+        prismatic = tuple(prismatic) + tuple(tab.units.get("prismatic", ()))
+        col = {h: i for i, h in enumerate(tab.header)}
+        block = lambda names: tab.values[:, [col[c] for c in names]]  # noqa: E731
+        q_raw, p = block(lay.joints), block(lay.position) * cf.LENGTH_SCALE[length]
+        if check_units:
+            cf.check_joint_units(q_raw, lay.joints, tab.lines, angle, path, prismatic)
+            cf.check_length_units(p, tab.lines, length, path)
+        q = q_raw * cf.joint_scale(lay.joints, prismatic, length, angle)
+        cov = {name: tab.values[:, col[c]] for name, c in lay.covariates.items()}
+        if lay.orientation is not None:
+            R = cf._rotations(lay.orientation, block(lay.orientation_columns), tab.lines, path, cf.ANGLE_SCALE[angle])
+            ds = cls(q=q, R=R, p=p, device=device or "pose", covariates=cov, joint_names=lay.joints, source=path)
+        else:
+            ds = cls(q=q, y=p, device=device or "position", covariates=cov, joint_names=lay.joints, source=path)
+        ds.units = {"length": length, "angle": angle}
+        return ds
+
+    def to_csv(self, path, length_unit="m", angle_unit="rad", joints=None, prismatic=()):
+        """Write this dataset as CSV (joint columns, x, y, z, and roll-pitch-yaw phix, phiy, phiz for
+        poses, then the covariates) with a `# units:` header line; atomically (temp file, then rename). Prismatic
+        joints (names in `prismatic`) are written in the length unit and listed in a `# prismatic:` line."""
+        from scipy.spatial.transform import Rotation
+
+        from jaxcal.fit import csvfile as cf
+        from jaxcal.io_atomic import write_text_atomic
+
+        if self.device.kind not in ("position", "pose"):
+            raise DataError(f"to_csv writes position or pose data, not {self.device.kind!r}")
+        joints = list(joints or self.joint_names or [f"q{i + 1}" for i in range(self.q.shape[1])])
+        ls, an = 1.0 / cf.LENGTH_SCALE[length_unit], 1.0 / cf.ANGLE_SCALE[angle_unit]
+        if self.device.kind == "position":
+            meas, names = self.y * ls, ["x", "y", "z"]
+        else:
+            rpy = Rotation.from_matrix(self.y[:, :3, :3]).as_euler("xyz") * an
+            meas, names = np.hstack([self.y[:, :3, 3] * ls, rpy]), ["x", "y", "z", "phix", "phiy", "phiz"]
+        cov = sorted(self.covariates)
+        q_file = self.q / cf.joint_scale(joints, prismatic, length_unit, angle_unit)
+        table = np.hstack([q_file, meas] + [np.asarray(self.covariates[c], float)[:, None] for c in cov])
+        lines = [f"# units: length={length_unit}, angle={angle_unit}"]
+        lines += [f"# prismatic: {', '.join(j for j in joints if j in prismatic)}"] if set(prismatic) & set(joints) else []
+        lines += [",".join(joints + names + cov)]
+        lines += [",".join(f"{v:.17g}" for v in row) for row in table]
+        return write_text_atomic(str(path), "\n".join(lines) + "\n")

@@ -1,0 +1,306 @@
+"""CSV measurement files: column layout, units, unit-mistake checks, precise errors.
+
+Layout (see docs/file-formats.md): one header row, one row per sample.
+- joints: columns named after the robot's joints (or given with `joints=`); revolute joints in the
+  angle unit, prismatic joints (`prismatic=`) in the length unit;
+- position of marker k: `x, y, z` (one marker) or `xk, yk, zk` (FIGAROH: `x1, y1, z1, x2, ...`);
+- optional orientation of marker k: roll-pitch-yaw angles `phixk, phiyk, phizk` (FIGAROH's
+  columns; fixed-axis X-Y-Z as URDF and pinocchio: R = Rz(phiz) Ry(phiy) Rx(phix)), a rotation
+  vector `rvxk, rvyk, rvzk`, a unit quaternion `qwk, qxk, qyk, qzk`, or a rotation matrix
+  `r11 .. r33` (single marker);
+- optional covariates: `time` (or `t`), `temperature`, `direction`, and any named with `covariates=`.
+Units: lines starting with `#` before the header may say `# units: length=mm, angle=deg` and
+`# prismatic: j3` (joint columns that are lengths); arguments give them otherwise; default m and
+rad. Orientation angles use the angle unit.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import os
+import re
+import warnings
+
+import numpy as np
+
+LENGTH_SCALE = {"m": 1.0, "mm": 1e-3}
+ANGLE_SCALE = {"rad": 1.0, "deg": np.pi / 180.0}
+COVARIATE_ALIASES = {"time": "time", "t": "time", "temperature": "temperature", "temp": "temperature",
+                     "direction": "direction"}
+_POS = re.compile(r"^([xyz])(\d*)$")
+_RPY = re.compile(r"^phi([xyz])(\d*)$")
+_ROTVEC = re.compile(r"^rv([xyz])(\d*)$")
+_QUAT = re.compile(r"^q([wxyz])(\d*)$")
+_MATRIX = re.compile(r"^r([123])([123])$")
+_UNITS = re.compile(r"\b(length|angle)\s*[=:]\s*([a-z]+)", re.IGNORECASE)
+_PRISMATIC = re.compile(r"^#\s*prismatic\s*:\s*(.*)$", re.IGNORECASE)
+MAX_POSITION_M = 20.0  # |p| beyond this in metres is taken for millimetres given as metres
+MIN_POSITION_MM = 5.0  # every |p| below this in millimetres looks like metres given as millimetres
+MAX_ANGLE_RAD = 2 * np.pi + 0.5  # |q| beyond this in radians is taken for degrees given as radians
+
+
+def prismatic_joints(robot) -> tuple[str, ...]:
+    """Names of the robot's prismatic joint inputs: their CSV values are lengths, not angles."""
+    out = []
+    for body in robot.bodies:
+        kind = body.kind[0] if isinstance(body.kind, tuple) else body.kind
+        is_prismatic = kind == "prismatic" or (body.convention in ("mdh", "mcpc") and kind == 1)
+        if is_prismatic and len(body.inputs) == 1:
+            out.append(robot.joint_names[body.inputs[0]])
+    return tuple(out)
+
+
+class DataError(ValueError):
+    """Bad input data; the message names the file, row, column or sample."""
+
+
+class UnitWarning(UserWarning):
+    """Values that look like they are in another unit than the one stated (possible but unlikely)."""
+
+
+@dataclasses.dataclass
+class Table:
+    """Raw numbers of a CSV file with the physical line number of every row."""
+
+    path: str
+    header: list[str]
+    values: np.ndarray  # (N, n_columns) float
+    lines: np.ndarray  # (N,) 1-based line numbers
+    units: dict  # from the header comment: {"length": ..., "angle": ...}
+
+
+def _header_units(comment: str, path: str, lineno: int) -> dict:
+    """{"length": .., "angle": ..} from a `# units:` line, or {"prismatic": [names]} from a `# prismatic:` line."""
+    m = _PRISMATIC.match(comment)
+    if m:
+        return {"prismatic": [n.strip() for n in m.group(1).split(",") if n.strip()]}
+    out = {}
+    for key, unit in _UNITS.findall(comment):
+        key, unit = key.lower(), unit.lower()
+        allowed = LENGTH_SCALE if key == "length" else ANGLE_SCALE
+        if unit not in allowed:
+            raise DataError(f"{path}, line {lineno}: {key} unit must be one of {sorted(allowed)}, got {unit!r}")
+        out[key] = unit
+    return out
+
+
+def read_table(path: str, delimiter: str = ",", needed=None, header_only: bool = False) -> Table:
+    """All rows as numbers. Errors name the file, the 1-based line and the column.
+
+    Only the columns in `needed` (default all) must hold numbers; the others may hold any text.
+    header_only: stop after the header (values empty), to check the columns before the rows.
+    """
+    path = str(path)
+    if not os.path.exists(path):
+        raise DataError(f"{path}: no such file")
+    with open(path, newline="") as fh:
+        text_lines = fh.read().splitlines()
+    units, header, header_line = {}, None, 0
+    rows, lines = [], []
+    for lineno, line in enumerate(text_lines, start=1):
+        stripped = line.strip()
+        if not stripped:
+            continue
+        if stripped.startswith("#"):
+            if header is None:
+                units.update(_header_units(stripped, path, lineno))
+            continue
+        fields = [f.strip() for f in next(csv.reader([line], delimiter=delimiter))]
+        if header is None:
+            header, header_line = fields, lineno
+            dup = sorted({h for h in header if header.count(h) > 1})
+            if dup:
+                raise DataError(f"{path}, line {lineno}: duplicate column name(s) {dup}")
+            if header_only:
+                return Table(path, header, np.zeros((0, len(header))), np.zeros(0, int), units)
+            continue
+        if len(fields) != len(header):
+            raise DataError(f"{path}, line {lineno}: {len(fields)} fields, header has {len(header)}")
+        rows.append(fields)
+        lines.append(lineno)
+    if header is None:
+        raise DataError(f"{path}: empty file (no header row)")
+    if not rows:
+        raise DataError(f"{path}: no data rows after the header on line {header_line}")
+    needed = set(header if needed is None else needed)
+    values = np.full((len(rows), len(header)), np.nan)
+    for r, (fields, lineno) in enumerate(zip(rows, lines)):
+        for c, (name, text) in enumerate(zip(header, fields)):
+            if name not in needed:
+                continue
+            try:
+                v = float(text)
+            except ValueError:
+                raise DataError(f"{path}, line {lineno}, column {name!r}: not a number: {text!r}") from None
+            if not np.isfinite(v):
+                raise DataError(f"{path}, line {lineno}, column {name!r}: non-finite value {text!r}")
+            values[r, c] = v
+    return Table(path, header, values, np.asarray(lines), units)
+
+
+def resolve_unit(kind: str, argument, from_file, path: str) -> str:
+    """The unit of `kind` ("length"/"angle"): the argument, else the file's header, else SI."""
+    allowed = LENGTH_SCALE if kind == "length" else ANGLE_SCALE
+    if argument is not None and argument not in allowed:
+        raise DataError(f"{path}: {kind}_unit must be one of {sorted(allowed)}, got {argument!r}")
+    if argument is not None and from_file is not None and argument != from_file:
+        raise DataError(f"{path}: the header says {kind}={from_file} but {kind}_unit={argument!r} was given")
+    return argument or from_file or ("m" if kind == "length" else "rad")
+
+
+@dataclasses.dataclass
+class Layout:
+    """Which columns hold what."""
+
+    joints: list[str]
+    position: list[str]
+    orientation: str | None  # "rpy" | "rotvec" | "quaternion" | "matrix" | None
+    orientation_columns: list[str]
+    covariates: dict  # canonical name -> column
+    markers: list[str]  # marker ids found ("" for plain x, y, z)
+
+
+def _markers(header):
+    found = {}
+    for h in header:
+        m = _POS.match(h)
+        if m:
+            found.setdefault(m.group(2), set()).add(m.group(1))
+    return sorted((k for k, v in found.items() if v == {"x", "y", "z"}), key=lambda k: int(k or 0))
+
+
+def _orientation_columns(header, marker):
+    rpy = [f"phi{a}{marker}" for a in "xyz"]
+    if all(c in header for c in rpy):
+        return "rpy", rpy
+    rv = [f"rv{a}{marker}" for a in "xyz"]
+    if all(c in header for c in rv):
+        return "rotvec", rv
+    qt = [f"q{a}{marker}" for a in "wxyz"]
+    if all(c in header for c in qt):
+        return "quaternion", qt
+    mx = [f"r{i}{j}" for i in "123" for j in "123"]
+    if all(c in header for c in mx):
+        return "matrix", mx
+    return None, []
+
+
+def _is_measurement(h):
+    return bool(_POS.match(h) or _RPY.match(h) or _ROTVEC.match(h) or _QUAT.match(h) or _MATRIX.match(h))
+
+
+def find_layout(header, path, joints=None, position_columns=None, marker=None, covariates=(), orientation=True) -> Layout:
+    """Classify the header's columns; errors name the file and the missing columns."""
+    markers = _markers(header)
+    if position_columns is not None:
+        position = list(position_columns)
+        marker_id = ""
+    else:
+        if not markers:
+            raise DataError(f"{path}: missing column(s) for the measured position: expected x, y, z "
+                            f"or x1, y1, z1, ...; header has {header}")
+        marker_id = markers[0] if marker is None else str(marker)
+        if marker_id not in markers:
+            if marker_id == "1" and markers == [""]:
+                marker_id = ""
+            else:
+                raise DataError(f"{path}: marker {marker!r} not found; markers with x, y, z columns: "
+                                f"{[m or '(unnumbered)' for m in markers]}")
+        position = [f"{a}{marker_id}" for a in "xyz"]
+    kind, ocols = _orientation_columns(header, marker_id) if orientation else (None, [])
+    cov = {}
+    for h in header:
+        if h.lower() in COVARIATE_ALIASES:
+            cov[COVARIATE_ALIASES[h.lower()]] = h
+    for c in covariates:
+        cov[COVARIATE_ALIASES.get(c.lower(), c)] = c
+    if joints is None:
+        used = set(position) | set(ocols) | set(cov.values())
+        joints = [h for h in header if h not in used and not _is_measurement(h)]
+        if not joints:
+            raise DataError(f"{path}: no joint columns found; header has {header}")
+    need = list(joints) + position + ocols + list(cov.values())
+    missing = [c for c in need if c not in header]
+    if missing:
+        raise DataError(f"{path}: missing column(s) {missing}; header has {header}")
+    return Layout(list(joints), position, kind, ocols, cov, markers)
+
+
+def _rotations(kind, block, lines, path, angle_scale):
+    """(N, 3, 3) rotation matrices from the orientation columns; errors name the line."""
+    from scipy.spatial.transform import Rotation
+
+    if kind == "rpy":
+        rpy = block * angle_scale
+        big = np.abs(rpy).max(axis=1) > MAX_ANGLE_RAD
+        if big.any():
+            i = int(np.flatnonzero(big)[0])
+            raise DataError(f"{path}, line {lines[i]}: roll/pitch/yaw angle of {np.abs(rpy[i]).max():.3g} rad: "
+                            "degrees given as radians? state the angle unit")
+        return Rotation.from_euler("xyz", rpy).as_matrix()  # lower case: fixed axes, R = Rz Ry Rx
+    if kind == "rotvec":
+        rv = block * angle_scale
+        big = np.linalg.norm(rv, axis=1) > 2 * MAX_ANGLE_RAD
+        if big.any():
+            i = int(np.flatnonzero(big)[0])
+            raise DataError(f"{path}, line {lines[i]}: rotation vector of norm {np.linalg.norm(rv[i]):.3g} rad: "
+                            "degrees given as radians? state the angle unit")
+        return Rotation.from_rotvec(rv).as_matrix()
+    if kind == "quaternion":
+        norm = np.linalg.norm(block, axis=1)
+        bad = np.abs(norm - 1.0) > 1e-3
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise DataError(f"{path}, line {lines[i]}: quaternion (qw, qx, qy, qz) has norm {norm[i]:.6g}, expected 1")
+        return Rotation.from_quat(block[:, [1, 2, 3, 0]]).as_matrix()
+    R = block.reshape(-1, 3, 3)
+    err = np.linalg.norm(np.swapaxes(R, 1, 2) @ R - np.eye(3), axis=(1, 2))
+    det = np.linalg.det(R)
+    bad = (err > 1e-3) | (det < 0)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise DataError(f"{path}, line {lines[i]}: r11..r33 is not a rotation matrix (|R^T R - I| = {err[i]:.3g}, det {det[i]:.3g})")
+    U, _, Vt = np.linalg.svd(R)  # project onto SO(3)
+    return U @ Vt
+
+
+def joint_scale(joints, prismatic, length_unit, angle_unit) -> np.ndarray:
+    """Factor from the file's unit to SI per joint column: length unit for prismatic joints, angle unit otherwise."""
+    return np.array([LENGTH_SCALE[length_unit] if j in prismatic else ANGLE_SCALE[angle_unit] for j in joints])
+
+
+def check_joint_units(q, joints, lines, angle_unit, path, prismatic=()):
+    """Joint values q in the stated unit. Degrees given as radians: |q| well beyond 2 pi is an
+    error naming the column and line; radians given as degrees (every |q| below pi degrees) is a warning."""
+    for j, name in enumerate(joints):
+        if name in prismatic:
+            continue
+        col = np.abs(q[:, j])
+        if angle_unit == "rad" and col.max() > MAX_ANGLE_RAD:
+            i = int(np.argmax(col))
+            raise DataError(f"{path}, line {lines[i]}, column {name!r}: {q[i, j]:.6g} rad is more than a full turn: "
+                            "degrees given as radians (or millimetres for a prismatic joint)? "
+                            "state the unit with angle_unit='deg' or a '# units: angle=deg' header line")
+    rev = [j for j, name in enumerate(joints) if name not in prismatic]
+    q = q[:, rev]
+    if angle_unit == "deg" and len(q) > 1 and q.size and np.abs(q).max() < np.pi and np.ptp(q, 0).max() > 0:
+        warnings.warn(f"{path}: every joint value is below {np.pi:.3g} deg although the unit is deg: radians given as degrees?",
+                      UnitWarning, stacklevel=3)
+
+
+def check_length_units(p_si, lines, length_unit, path):
+    """Millimetres given as metres (|p| > 20 m): an error; metres given as millimetres (every
+    |p| < 5 mm): a warning."""
+    norm = np.linalg.norm(p_si, axis=1)
+    if length_unit == "m" and norm.max() > MAX_POSITION_M:
+        i = int(np.argmax(norm))
+        raise DataError(f"{path}, line {lines[i]}: measured point {norm[i]:.6g} m from the device origin: "
+                        "millimetres given as metres? state the unit with length_unit='mm' or a '# units: length=mm' header line")
+    if length_unit == "mm" and norm.max() < MIN_POSITION_MM * 1e-3:
+        warnings.warn(f"{path}: every measured point is within {MIN_POSITION_MM} mm of the device origin although the "
+                      "unit is mm: metres given as millimetres?", UnitWarning, stacklevel=3)
+
+
+__all__ = ["DataError", "Layout", "Table", "UnitWarning", "find_layout", "joint_scale", "prismatic_joints", "read_table",
+           "resolve_unit"]
