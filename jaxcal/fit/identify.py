@@ -126,20 +126,32 @@ def _jacobian(robot, device, a_full, q, y, w):
     return jax.jacfwd(lambda a: residuals(robot, device, a, q, y, w).reshape(-1))(a_full)
 
 
-def _history(robot, device, x0, args, solver, max_steps, rtol, atol):
-    """Cost after each solver step (for convergence plots), by stepping optimistix by hand."""
+@functools.cache
+def _history_fns(robot, device, solver, rtol, atol):
+    """Jitted (init, step, done, cost) of one solver, built once per robot/device/solver: the data
+    and weights are arguments, so every later call of `identify(history=True)` reuses the compile."""
     slv = _solver(solver, rtol, atol)
     fn = lambda x, a: (_stacked(robot, device, x, a), None)  # noqa: E731
-    f_struct = jax.eval_shape(lambda x: fn(x, args)[0], x0)
-    state = slv.init(fn, x0, args, {}, f_struct, None, frozenset())
-    step = eqx.filter_jit(lambda x, s: slv.step(fn, x, args, {}, s, frozenset())[:2])
-    done = eqx.filter_jit(lambda x, s: slv.terminate(fn, x, args, {}, s, frozenset())[0])
-    cost = jax.jit(lambda x: jnp.sum(fn(x, args)[0] ** 2))
-    x, hist = x0, [float(cost(x0))]
+
+    def init(x, args):
+        f_struct = jax.eval_shape(lambda z: fn(z, args)[0], x)
+        return slv.init(fn, x, args, {}, f_struct, None, frozenset())
+
+    step = eqx.filter_jit(lambda x, s, args: slv.step(fn, x, args, {}, s, frozenset())[:2])
+    done = eqx.filter_jit(lambda x, s, args: slv.terminate(fn, x, args, {}, s, frozenset())[0])
+    cost = jax.jit(lambda x, args: jnp.sum(fn(x, args)[0] ** 2))
+    return init, step, done, cost
+
+
+def _history(robot, device, x0, args, solver, max_steps, rtol, atol):
+    """Cost after each solver step (for convergence plots), by stepping optimistix by hand."""
+    init, step, done, cost = _history_fns(robot, device, solver, rtol, atol)
+    state = init(x0, args)
+    x, hist = x0, [float(cost(x0, args))]
     for _ in range(max_steps):
-        x, state = step(x, state)
-        hist.append(float(cost(x)))
-        if bool(done(x, state)):
+        x, state = step(x, state, args)
+        hist.append(float(cost(x, args)))
+        if bool(done(x, state, args)):
             break
     return np.array(hist)
 
