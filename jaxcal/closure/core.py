@@ -104,13 +104,19 @@ def _check(robot: Robot) -> Closure:
 def open_tree(robot: Robot) -> Robot:
     """The tree with every free joint turned into an input after the actuated ones (closure removed).
 
-    Its joint vector is [joint_variables(q), theta_free]; gains/coupling are applied before.
+    Its joint vector is [joint_variables(q), theta_free, 0]; gains/coupling are applied before. MCPC
+    rotary/prismatic bodies that are neither actuated nor free (e.g. one joint of a closure pair)
+    read the trailing constant 0.
     """
     c = _check(robot)
     n_act = robot.n_inputs
     bodies = list(robot.bodies)
     for k, b in enumerate(c.free):
         bodies[b - 1] = dataclasses.replace(bodies[b - 1], inputs=(n_act + k,))
+    zero = n_act + c.n_free
+    for i, b in enumerate(bodies):
+        if b.convention == "mcpc" and b.kind in (0, 1) and not b.inputs:
+            bodies[i] = dataclasses.replace(b, inputs=(zero,))
     return robot.replace(bodies=tuple(bodies), closure=None, gains=None, coupling_joint=None, coupling_motor=None,
                          joint_names=robot.joint_names + tuple(f"j{b}" for b in c.free))
 
@@ -118,7 +124,7 @@ def open_tree(robot: Robot) -> Robot:
 def tree_frames(robot: Robot, a, qj, theta_free) -> Pose:
     """All body frames of the open tree for joint variables qj (actuated) and theta_free."""
     tree = open_tree(robot)
-    theta = jnp.concatenate([qj, theta_free])
+    theta = jnp.concatenate([qj, theta_free, jnp.zeros(1, dtype=theta_free.dtype)])
     if tree.bodies[0].convention == "planar":
         from jaxcal.closure.planar import planar_frames
 

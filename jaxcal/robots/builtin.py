@@ -74,3 +74,15 @@ def fourbar2d():
     return planar_robot("fourbar2d", lengths=[0.95, 0.0, 0.9, 1.1, 0.9, 0.0], offsets=[0.0] * 6,
                         predecessors=[0, 1, 0, 3, 4, 5], actuated=(1,), closure=closure, tip=5,
                         home=[np.pi / 2 + 0.4], q_min=[np.pi / 2 - 0.6], q_max=[np.pi / 2 + 1.2])
+
+
+@register("fourbar3d")
+@functools.cache
+def fourbar3d():
+    """The 3-D four-bar of seed 004 Table 4.2a (Figure 4.11) as an MCPC tree with a ball-joint closure.
+
+    Joint 1 actuated, joints 3-5 free (start 0, the closed configuration at theta1 = 0), closure
+    (position) between frames 2 and 6, tool = frame 5. theta1 = +-pi/2 are the singular
+    configurations (links stretched / joints 2 and 4 coincident), so q is kept within +-1.2 rad.
+    """
+    return load_robot(_data_file("fourbar3d.yaml"))
