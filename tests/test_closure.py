@@ -142,3 +142,35 @@ def test_bad_descriptions():
     rb = planar_robot("bad", [1.0] * 6, [0.0] * 6, [0, 1, 0, 3, 4, 5], (1,), c, tip=5)
     with pytest.raises(ValueError, match="body 1 is actuated"):
         jc.forward(rb, rb.nominal, jnp.array([1.0]))
+
+
+def test_full_closure_mcpc_planar_fourbar(fb):
+    """The same four-bar as an MCPC tree closed at a rotary joint ("full": position + Euler parameters).
+
+    Bodies: 1 crank joint (actuated) at the origin, 2 crank end (free), 3 second ground pivot
+    (free), 4 coupler joint (free, the tool), 5 end of the last link, closing with 2 (closure column).
+    Frame 4 must sit where the thesis' frame 5 does, and jacfwd must match central FD. Only in-plane
+    parameters are perturbed: tilting an axis (a1, a2) leaves a planar 4R with a full closure
+    unable to close (it is over-constrained in space), which the flag reports.
+    """
+    rows = [
+        [0, 0, 0, 0, 0, 0, 0, 0, 0],
+        [0, 0, 0, 0.95, 0, 0, 1, 0, 0],
+        [0, 0, 0, 0.9, 0, 0, 0, 0, 0],
+        [0, 0, 0, 1.1, 0, 0, 3, 0, 0],
+        [0, 0, 0, 0.9, 0, 0, 4, 2, 0],
+    ]
+    rb = jc.robots.mcpc_robot("fourbar_mcpc", rows, actuated=[1], tip=4, closure_start=[1.35, 1.93, 1.39])
+    assert rb.closure.pairs == ((2, 5, "full"),) and rb.closure.free == (2, 3, 4)
+    q = jnp.array([[THETA1], [1.2], [2.6]])
+    sol = solve(rb, rb.nominal, q)
+    assert bool(jnp.all(sol.ok))
+    np.testing.assert_allclose(np.asarray(jc.forward(rb, rb.nominal, q).p), np.asarray(jc.forward(fb, fb.nominal, q).p), atol=1e-10)
+    in_plane = np.array([n.split(".")[1] in ("a3", "d1", "d2") for n in rb.names])
+    a0 = rb.nominal + 0.01 * in_plane * np.cos(np.arange(rb.n_params))
+    assert bool(jnp.all(solve(rb, a0, q).ok))
+    tilted = rb.nominal.at[rb.names.index("j4.a1")].add(0.01)
+    assert not bool(jnp.any(solve(rb, tilted, q).ok))
+    J = jax.jacfwd(lambda a: jc.forward(rb, a, q).p.reshape(-1))(a0)
+    J_fd = central_fd(lambda a: jc.forward(rb, jnp.asarray(a), q).p, a0)
+    assert rel_err(J, J_fd) < 1e-7
