@@ -127,8 +127,9 @@ def test_vmap_batch_and_flags(fb):
     r2 = 0.95 * np.array([np.cos(1.2), np.sin(1.2)])
     p5 = np.asarray(p[1, :2])
     assert abs(np.linalg.norm(p5 - [0.9, 0.0]) - 1.1) < 1e-10 and abs(np.linalg.norm(r2 - p5) - 0.9) < 1e-10
-    J = jax.jacfwd(lambda a: jc.forward(fb, a, q).p)(fb.nominal)
+    J, JR = jax.jacfwd(lambda a: tuple(jc.forward(fb, a, q)))(fb.nominal)[::-1]
     assert np.all(np.isfinite(np.asarray(J))) and float(jnp.abs(J[2]).max()) == 0.0
+    assert np.all(np.isfinite(np.asarray(JR))) and float(jnp.abs(JR[2]).max()) == 0.0
 
 
 def test_bad_descriptions():

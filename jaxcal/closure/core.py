@@ -227,6 +227,7 @@ def _closed_theta_jvp(robot, primals, tangents):
     V = jax.jacfwd(lambda th: closure_residual(robot, a, qj, th))(theta)
     _, dv = jax.jvp(lambda a_, q_: closure_residual(robot, a_, q_, theta), (a, qj), (da, dqj))
     dtheta = -jnp.linalg.solve(V.T @ V, V.T @ dv)
+    dtheta = jnp.where(jnp.all(jnp.isfinite(dtheta)), dtheta, 0.0)  # singular V: no closure, flagged anyway
     return (theta, steps), (dtheta, np.zeros(np.shape(steps), dtype=jax.dtypes.float0))
 
 
@@ -275,6 +276,7 @@ def _forward_single(robot: Robot, a, qi, start) -> Pose:
     f = tree_frames(robot, a, qj, sol.theta_free)
     R, p = f.R[robot.tip], f.p[robot.tip]
     p = jnp.where(sol.ok, p, jax.lax.stop_gradient(p) + FAIL_OFFSET)
+    R = jnp.where(sol.ok, R, jax.lax.stop_gradient(R))  # no derivative from a sample that did not close
     return Pose(R, p)
 
 
