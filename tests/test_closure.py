@@ -51,9 +51,11 @@ def test_eq_2_87(fb):
 
     23 of the 24 entries round to the printed value. The exception is d y5 / d phi1, computed
     -0.328269 and printed -0.3282: phi1 enters only as theta1 + phi1, so this entry is d y5 / d theta1,
-    which the finite-difference and chain-rule checks below confirm; the thesis' own eq 2.100 gives
-    d theta4 / d phi1 = 0.8558 and d y5 / d phi1 = a4 cos(theta4) d theta4/d phi1 = -0.3283 from it.
-    So that entry is held to within one unit of the printed last digit (1e-4), the others to rounding.
+    which the finite-difference and chain-rule checks below confirm. It equals a4 cos(psi4) times
+    d theta4 / d phi1 (psi4 = 1.926972): the printed -0.3282 needs d theta4 / d phi1 <= 0.85576, at the
+    rounding edge of the thesis' own eq 2.100 entry 0.8558; we compute 0.855841 (which gives
+    -0.328269 and the printed row-1 entry -0.8823 alike). So that entry is held to within one unit of
+    the printed last digit (1e-4), the other 23 to rounding (0.5e-4).
     """
     J = closed_jacobian(fb, fb.nominal, THETA1)
     err = np.abs(J - EQ_2_87)
