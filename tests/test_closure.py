@@ -9,7 +9,7 @@ import pytest
 from conftest import central_fd, rel_err
 
 import jaxcal as jc
-from jaxcal.closure import FAIL_OFFSET, Closure, closure_residual, planar_robot, solve, tree_frames
+from jaxcal.closure import FAIL_OFFSET, Closure, all_frames, closure_residual, planar_robot, solve, tree_frames
 
 THETA1 = np.pi / 2 + 0.4
 # eq 2.87 (and 2.101): closed-loop Jacobian of the frame-5 position, columns a1..a6, phi1..phi6.
@@ -44,6 +44,9 @@ def test_contract(fb):
     assert bool(sol.ok) and float(sol.residual_norm) < 1e-12
     # thesis' assembly mode: theta4 = 1.92697 (the other mode has theta4 = 3.1496)
     np.testing.assert_allclose(np.asarray(sol.theta_free), [1.926972, 3.315753], atol=1e-6)
+    frames = all_frames(fb, fb.nominal, jnp.array([THETA1]))
+    assert float(jnp.linalg.norm(frames.p[1] - frames.p[5])) < 1e-12  # joints 2 and 6 meet
+    np.testing.assert_allclose(np.asarray(frames.p[4]), np.asarray(pose.p), atol=1e-14)
 
 
 def test_eq_2_87(fb):

@@ -81,11 +81,6 @@ class Closure:
     def n_free(self) -> int:
         return len(self.free)
 
-    @property
-    def n_rows(self) -> int:
-        """Rows of the closure residual v (eq 2.67): 7 per full pair, 3 per position pair."""
-        return sum(7 if kind == "full" else 3 for _, _, kind in self.pairs)
-
 
 class ClosureSolution(NamedTuple):
     """Free joint values, weighted residual norm |v| and the closed flag (|v| <= tol), per sample."""
