@@ -1,0 +1,306 @@
+"""Loop closure of trees with closure pairs (seed 004 §2.3-2.4).
+
+A closed mechanism is described as an open tree (MCPC rows, or the planar absolute-angle bodies of
+`jaxcal.closure.planar`) plus a `Closure`: which body frames must coincide (closure pairs), which
+non-actuated joints are free, and the free-joint start that selects the assembly mode.
+
+Closure (seed 004 eq 2.19-2.25): with g_p = [r_0p; eta_p] the position and Euler parameters of
+frame p, find theta_free minimising sum_i v_i^T Wc v_i with v_i = g_{p_i} - g_{q_i}; at a spherical
+closure only the position rows are kept. The minimiser is optimistix's Levenberg-Marquardt; its
+derivative is the implicit function theorem written as a `jax.custom_jvp` (Gauss-Newton form, exact
+at v = 0), so `jax.jacfwd` of `forward_closed` with respect to `a` is the closed-loop Jacobian of
+eq 2.65/2.69. (optimistix's own `ImplicitAdjoint` gives the same numbers but differentiates the
+Hessian of |v|^2: compiling jacfwd through it took ~36 s for the 3-D four-bar against ~4 s here.)
+
+Failure is data: the thesis' check (|v| > 1e-10 after convergence) flags a sample; `solve` returns
+the flag and `forward_closed` moves a flagged sample's position by `FAIL_OFFSET` metres (finite,
+no NaN, but far from any reading) so a fit step that makes a sample infeasible raises the cost
+and is rejected by the line search / trust region, as the thesis returns Inf (§3.3).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from jaxcal.kin.model import Robot, _batched, frames_single, joint_variables
+from jaxcal.kin.pose import Pose
+from jaxcal.kin.rotations import quat_from_matrix
+
+CLOSURE_KINDS = ("full", "position")
+SOLVERS = ("lm", "newton")
+FAIL_OFFSET = 1.0e3  # metres added to each coordinate of a sample whose loops do not close
+CLOSED_TOL = 1e-10  # seed 004 §2.4.1: residual norm above this is a failure to close
+
+
+@dataclasses.dataclass(frozen=True)
+class Closure:
+    """How a tree is closed. Bodies are numbered 1..N as in the seed's Table 4.1.
+
+    pairs: (p, q, kind) closure pairs; kind "full" matches position and Euler parameters (rotary and
+        prismatic closures), "position" matches position only (spherical closures, eq 2.23).
+    free: bodies whose joint variable is solved by closure, in the order of theta_free.
+    start: default theta_free start (selects the assembly mode).
+    w_position, w_orientation: diagonal of the weighting matrix Wc (eq 2.25).
+    start_fn: optional start_fn(a, qj) -> theta_free start per sample (e.g. a nominal direct
+        solution, seed §2.4); used instead of `start` when given (no derivative flows through it).
+    solver: "lm" (optimistix Levenberg-Marquardt, the default) or "newton" (the Newton/LM hybrid
+        `newton_lm`: Gauss-Newton steps with LM damping only when a step fails; cheaper to compile).
+    """
+
+    pairs: tuple[tuple[int, int, str], ...]
+    free: tuple[int, ...]
+    start: tuple[float, ...]
+    w_position: float = 1.0
+    w_orientation: float = 1.0
+    tol: float = CLOSED_TOL
+    max_steps: int = 100
+    solver: str = "lm"
+    start_fn: Callable | None = None
+
+    def __post_init__(self):
+        if self.solver not in SOLVERS:
+            raise ValueError(f"closure solver must be one of {SOLVERS}, got {self.solver!r}")
+        for k, (p, q, kind) in enumerate(self.pairs):
+            if kind not in CLOSURE_KINDS:
+                raise ValueError(f"closure pair {k} ({p}, {q}): kind must be one of {CLOSURE_KINDS}, got {kind!r}")
+            if p == q or p < 1 or q < 1:
+                raise ValueError(f"closure pair {k}: bodies must be two different body numbers >= 1, got ({p}, {q})")
+        if len(self.start) != len(self.free):
+            raise ValueError(f"closure start has {len(self.start)} values for {len(self.free)} free joints")
+        if len(set(self.free)) != len(self.free):
+            raise ValueError(f"closure free joints repeat a body: {self.free}")
+
+    @property
+    def n_free(self) -> int:
+        return len(self.free)
+
+
+class ClosureSolution(NamedTuple):
+    """Free joint values, weighted residual norm |v| and the closed flag (|v| <= tol), per sample."""
+
+    theta_free: jnp.ndarray
+    residual_norm: jnp.ndarray
+    ok: jnp.ndarray
+    steps: jnp.ndarray
+
+
+def _check(robot: Robot) -> Closure:
+    c = robot.closure
+    if not isinstance(c, Closure):
+        raise ValueError(f"robot {robot.name!r} has no jaxcal.closure.Closure description (closure={c!r})")
+    n = len(robot.bodies)
+    for p, q, _ in c.pairs:
+        if max(p, q) > n:
+            raise ValueError(f"robot {robot.name!r}: closure pair ({p}, {q}) names a body beyond {n}")
+    for b in c.free:
+        if not 1 <= b <= n:
+            raise ValueError(f"robot {robot.name!r}: free joint {b} is not a body 1..{n}")
+        if robot.bodies[b - 1].inputs:
+            raise ValueError(f"robot {robot.name!r}: body {b} is actuated and cannot be a free joint")
+    return c
+
+
+@functools.cache
+def open_tree(robot: Robot) -> Robot:
+    """The tree with every free joint turned into an input after the actuated ones (closure removed).
+
+    Its joint vector is [joint_variables(q), theta_free, 0]; gains/coupling are applied before. MCPC
+    rotary/prismatic bodies that are neither actuated nor free (e.g. one joint of a closure pair)
+    read the trailing constant 0.
+    """
+    c = _check(robot)
+    n_act = robot.n_inputs
+    bodies = list(robot.bodies)
+    for k, b in enumerate(c.free):
+        bodies[b - 1] = dataclasses.replace(bodies[b - 1], inputs=(n_act + k,))
+    zero = n_act + c.n_free
+    for i, b in enumerate(bodies):
+        if b.convention == "mcpc" and b.kind in (0, 1) and not b.inputs:
+            bodies[i] = dataclasses.replace(b, inputs=(zero,))
+    return robot.replace(bodies=tuple(bodies), closure=None, gains=None, coupling_joint=None, coupling_motor=None,
+                         joint_names=robot.joint_names + tuple(f"j{b}" for b in c.free))
+
+
+def tree_frames(robot: Robot, a, qj, theta_free) -> Pose:
+    """All body frames of the open tree for joint variables qj (actuated) and theta_free."""
+    tree = open_tree(robot)
+    theta = jnp.concatenate([qj, theta_free, jnp.zeros(1, dtype=theta_free.dtype)])
+    if tree.bodies[0].convention == "planar":
+        from jaxcal.closure.planar import planar_frames
+
+        return planar_frames(tree, a, theta)
+    return frames_single(tree, a, theta)
+
+
+def euler_parameters(R):
+    """Euler parameters (eta0, eta1, eta2, eta3) of a rotation (seed 004 eq A.15-A.18)."""
+    return quat_from_matrix(R)
+
+
+def closure_residual(robot: Robot, a, qj, theta_free):
+    """v of eq 2.67 weighted by Wc^(1/2): stacked g_p - g_q over the closure pairs."""
+    c = robot.closure
+    f = tree_frames(robot, a, qj, theta_free)
+    parts = []
+    for p, q, kind in c.pairs:
+        parts.append(c.w_position * (f.p[p - 1] - f.p[q - 1]))
+        if kind == "full":
+            ep, eq = euler_parameters(f.R[p - 1]), euler_parameters(f.R[q - 1])
+            sign = jnp.where(jnp.dot(ep, eq) < 0, -1.0, 1.0)  # q and -q are the same rotation
+            parts.append(c.w_orientation * (ep - sign * eq))
+    return jnp.concatenate(parts)
+
+
+def _lm():
+    return optx.LevenbergMarquardt(rtol=1e-13, atol=1e-14)
+
+
+def newton_lm(fn, start, max_steps: int, tol: float):
+    """Newton/LM hybrid for a closure residual fn(theta) -> v: (theta, steps).
+
+    Each step solves (V^T V + mu I) d = -V^T v with V = dv/dtheta; a step that lowers |v| is kept
+    and mu shrinks tenfold (towards plain Gauss-Newton, quadratic near a closed configuration),
+    otherwise mu grows tenfold. Stops at |v| <= tol / 100, after max_steps, or when mu exceeds 1e12.
+    """
+    eye = jnp.eye(start.shape[0], dtype=start.dtype)
+
+    def cond(state):
+        _, norm, mu, k = state
+        return (norm > 0.01 * tol) & (k < max_steps) & (mu < 1e12)
+
+    def body(state):
+        th, norm, mu, k = state
+        v = fn(th)
+        V = jax.jacfwd(fn)(th)
+        step = -jnp.linalg.solve(V.T @ V + mu * eye, V.T @ v)
+        trial = th + step
+        trial_norm = jnp.linalg.norm(fn(trial))
+        better = jnp.isfinite(trial_norm) & (trial_norm < norm)
+        return (jnp.where(better, trial, th), jnp.where(better, trial_norm, norm),
+                jnp.where(better, jnp.maximum(mu * 0.1, 1e-15), mu * 10.0), k + 1)
+
+    th, _, _, k = jax.lax.while_loop(cond, body, (start, jnp.linalg.norm(fn(start)), jnp.asarray(1e-6), 0))
+    return th, k
+
+
+def _lm_solve(robot: Robot, a, qj, start):
+    """(theta_free, steps): LM on |v|^2 from start (never raises, so a batch survives a bad sample)."""
+    c = robot.closure
+    if c.solver == "newton":
+        th, k = newton_lm(lambda th: closure_residual(robot, a, qj, th), start, c.max_steps, c.tol)
+        return jnp.where(jnp.all(jnp.isfinite(th)), th, start), k
+    sol = optx.least_squares(lambda th, args: closure_residual(robot, args[0], args[1], th), _lm(), start,
+                             args=(a, qj), max_steps=robot.closure.max_steps, throw=False,
+                             adjoint=optx.RecursiveCheckpointAdjoint())
+    finite = jnp.all(jnp.isfinite(sol.value))
+    return jnp.where(finite, sol.value, start), sol.stats["num_steps"]
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _closed_theta(robot: Robot, a, qj, start):
+    """theta_free closing the loops; its derivative is the implicit function theorem (eq 2.65-2.69)."""
+    return _lm_solve(robot, a, qj, start)
+
+
+@_closed_theta.defjvp
+def _closed_theta_jvp(robot, primals, tangents):
+    """d theta = -(V^T V)^-1 V^T (dv/da da + dv/dq dq), V = dv/dtheta at the closed configuration.
+
+    At v = 0 this is the exact implicit derivative of the least-squares solution (the second-order
+    term of the Hessian multiplies v); the start has no influence on a converged solution.
+    """
+    a, qj, start = primals
+    da, dqj, _ = tangents
+    theta, steps = _lm_solve(robot, a, qj, start)
+    V = jax.jacfwd(lambda th: closure_residual(robot, a, qj, th))(theta)
+    _, dv = jax.jvp(lambda a_, q_: closure_residual(robot, a_, q_, theta), (a, qj), (da, dqj))
+    dtheta = -jnp.linalg.solve(V.T @ V, V.T @ dv)
+    dtheta = jnp.where(jnp.all(jnp.isfinite(dtheta)), dtheta, 0.0)  # singular V: no closure, flagged anyway
+    return (theta, steps), (dtheta, np.zeros(np.shape(steps), dtype=jax.dtypes.float0))
+
+
+def _solve_single(robot: Robot, a, qj, start) -> ClosureSolution:
+    c = robot.closure
+    if start is None:  # per-sample start from the robot's start_fn
+        start = jnp.asarray(jax.lax.stop_gradient(c.start_fn(a, qj)), dtype=jnp.float64)
+    theta, steps = _closed_theta(robot, a, qj, start)
+    norm = jnp.linalg.norm(closure_residual(robot, jax.lax.stop_gradient(a), jax.lax.stop_gradient(qj),
+                                            jax.lax.stop_gradient(theta)))
+    ok = jnp.isfinite(norm) & (norm <= c.tol)
+    return ClosureSolution(theta, jnp.where(jnp.isfinite(norm), norm, jnp.inf), ok, steps)
+
+
+def _start(robot: Robot, start):
+    """The explicit start, else None when the closure has a start_fn, else the closure's start."""
+    if start is None and robot.closure.start_fn is not None:
+        return None
+    s = robot.closure.start if start is None else start
+    return jnp.asarray(s, dtype=jnp.float64)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _solve_batched(robot: Robot, a, q, start) -> ClosureSolution:
+    def one(qi):
+        return _solve_single(robot, a, joint_variables(robot, a, qi), start)
+
+    return _batched(one, q)
+
+
+def solve(robot: Robot, a, q, start=None) -> ClosureSolution:
+    """Close the loops for actuator settings q (..., n_inputs): free joints, |v|, ok flag per sample.
+
+    start: theta_free start (default `robot.closure.start_fn(a, qj)` per sample when set, else
+    `robot.closure.start`, the robot's assembly mode).
+    """
+    _check(robot)
+    a = jnp.asarray(a, dtype=jnp.float64)
+    q = jnp.asarray(q, dtype=jnp.float64)
+    return _solve_batched(robot, a, q, _start(robot, start))
+
+
+def _forward_single(robot: Robot, a, qi, start) -> Pose:
+    qj = joint_variables(robot, a, qi)
+    sol = _solve_single(robot, a, qj, start)
+    f = tree_frames(robot, a, qj, sol.theta_free)
+    R, p = f.R[robot.tip], f.p[robot.tip]
+    p = jnp.where(sol.ok, p, jax.lax.stop_gradient(p) + FAIL_OFFSET)
+    R = jnp.where(sol.ok, R, jax.lax.stop_gradient(R))  # no derivative from a sample that did not close
+    return Pose(R, p)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _forward_batched(robot: Robot, a, q, start) -> Pose:
+    return _batched(lambda qi: _forward_single(robot, a, qi, start), q)
+
+
+def forward_closed(robot: Robot, a, q, start=None) -> Pose:
+    """Tool frame of a closed mechanism (closure solved inside) for q (..., n_inputs).
+
+    A sample whose loops do not close (|v| > tol) has FAIL_OFFSET added to its position; check
+    `solve(...).ok` or `closed(...)` for the flags.
+    """
+    _check(robot)
+    a = jnp.asarray(a, dtype=jnp.float64)
+    q = jnp.asarray(q, dtype=jnp.float64)
+    return _forward_batched(robot, a, q, _start(robot, start))
+
+
+def closed(robot: Robot, a, q, start=None):
+    """Per-sample boolean flags: True where the loops close to |v| <= tol."""
+    return solve(robot, a, q, start).ok
+
+
+def all_frames(robot: Robot, a, q, start=None) -> Pose:
+    """Every body frame of the closed mechanism for one actuator setting q (n_inputs,)."""
+    a = jnp.asarray(a, dtype=jnp.float64)
+    q = jnp.asarray(q, dtype=jnp.float64)
+    qj = joint_variables(robot, a, q)
+    sol = solve(robot, a, q, start)
+    return tree_frames(robot, a, qj, sol.theta_free)
