@@ -1,0 +1,311 @@
+"""The Delta robot: nominal direct and inverse solutions (seed 004 §2.6) and a fast exact closure
+of the Table 4.6 MCPC model.
+
+Nominal model (§2.6, Figure 2.6): base radius rb, nacelle radius rn, actuated arm n, parallel
+rods m, arms at azimuths psi_i; theta_i is the actuated angle below the horizontal, so the
+elbow is b_i = [(rb + n cos th_i) cos psi_i, (rb + n cos th_i) sin psi_i, -n sin th_i]
+(eq 2.114-2.115) and the nacelle stays parallel to the base.
+
+- `direct`: Clavel's variation (eq 2.135-2.146): shift each elbow inwards by rn so that the three
+  rod spheres meet in the nacelle centre P, express the spheres in a frame Fs with B'1 at the
+  origin, B'2 on its 1 axis and B'3 in its 1-2 plane, and take the lower intersection.
+- `inverse`: per arm, in the frame Fu whose 1 axis points to A_i (eq 2.147-2.158), the elbow
+  lies on the circle of the arm and on the sphere of radius m around C_i; the elbow-out
+  intersection is taken.
+
+Closure of the full 30-body MCPC model (Table 4.6, `jaxcal/robots/data/delta.yaml`): every rod
+but the first ends in a universal joint whose centre does not move with the joint angles (bodies
+16, 19, 22, 25, 28 sit on the elbow axis), so its rod end sweeps a sphere of radius |d_rod|
+around that centre. The 20 free joints therefore reduce to the 5 joints of rod 1 (universal
+5-6, ball 7-8-9, which carry the nacelle) under 5 sphere conditions |o_closure - c_k| = L_k:
+a square system solved by Newton from the nominal direct solution. The other rods' universal
+angles then follow by atan2 and their spin joints (17, 20, 23, 26, 29) do not move anything
+(set to 0). Every sample is checked on the whole tree: the 15 closure residuals (positions of
+the spherical closure pairs) must have norm <= `CLOSURE_TOL` (the thesis' 1e-10), else the
+sample is flagged. Derivatives come from the implicit function theorem: one Newton step taken
+from the (gradient-stopped) converged point, dx/da = -J^-1 dF/da.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.kin import conventions as cv
+from jaxcal.kin.pose import Pose
+from jaxcal.kin.rotations import rot_x, rot_y
+
+CLOSURE_TOL = 1e-10  # closure residual norm above which a sample is infeasible (seed 004 §4.3)
+NEWTON_STEPS = 8
+NEWTON_TOL = 1e-12  # m; the final implicit step squares this
+
+
+@dataclasses.dataclass(frozen=True)
+class DeltaGeometry:
+    """Nominal Delta dimensions (m) and arm azimuths psi (rad), in the order of the actuators."""
+
+    rb: float = 0.2805
+    rn: float = 0.196
+    n: float = 0.6
+    m: float = 0.9
+    psi: tuple = (0.0, -2.0 * np.pi / 3.0, 2.0 * np.pi / 3.0)
+
+
+# The Canterbury Delta of Table 4.6: actuators 2, 3, 4 at psi = 0, -120, +120 deg.
+NOMINAL = DeltaGeometry()
+
+
+def _radial(psi):
+    return jnp.stack([jnp.cos(psi), jnp.sin(psi), jnp.zeros_like(psi)], axis=-1)
+
+
+def elbows(theta, g: DeltaGeometry = NOMINAL):
+    """Elbow points B_i (3, 3), one row per arm (eq 2.114)."""
+    psi = jnp.asarray(g.psi)
+    r = g.rb + g.n * jnp.cos(theta)
+    return jnp.stack([r * jnp.cos(psi), r * jnp.sin(psi), -g.n * jnp.sin(theta)], axis=-1)
+
+
+def direct(theta, g: DeltaGeometry = NOMINAL):
+    """Nacelle centre P (3,) for actuator angles theta (3,) and a feasibility flag (eq 2.135-2.146)."""
+    theta = jnp.asarray(theta, dtype=jnp.float64)
+    b = elbows(theta, g) - g.rn * _radial(jnp.asarray(g.psi))  # B'_i, eq 2.135
+    e1 = b[1] - b[0]
+    i_s = e1 / jnp.linalg.norm(e1)
+    k_s = jnp.cross(e1, b[2] - b[0])
+    k_s = k_s / jnp.linalg.norm(k_s)
+    k_s = jnp.where(k_s[2] < 0, -k_s, k_s)  # 3 axis upwards whatever the order of the arms
+    j_s = jnp.cross(k_s, i_s)
+    a = e1 @ i_s  # sphere centres (0,0,0), (a,0,0), (b,c,0) in Fs, eq 2.139-2.141
+    bb = (b[2] - b[0]) @ i_s
+    c = (b[2] - b[0]) @ j_s
+    p1 = a / 2.0
+    p2 = c / 2.0 + (bb**2 - a * bb) / (2.0 * c)
+    h2 = g.m**2 - p1**2 - p2**2
+    ok = h2 >= 0.0
+    p3 = -jnp.sqrt(jnp.where(ok, h2, 0.0))  # lower intersection, eq 2.144
+    P = b[0] + p1 * i_s + p2 * j_s + p3 * k_s  # eq 2.145
+    return P, ok
+
+
+def inverse(P, g: DeltaGeometry = NOMINAL):
+    """Actuator angles theta (3,) placing the nacelle centre at P (3,), and a feasibility flag
+    (eq 2.147-2.158). In Fu the elbow is (rb + n cos th, 0, -n sin th) and |B - C| = m gives
+    e cos th + c3 sin th = K / (2 n) with e = rb - c1, K = m^2 - n^2 - e^2 - c2^2 - c3^2."""
+    P = jnp.asarray(P, dtype=jnp.float64)
+    psi = jnp.asarray(g.psi)
+    cp, sp = jnp.cos(psi), jnp.sin(psi)
+    c1 = cp * P[0] + sp * P[1] + g.rn  # C_i in Fu (eq 2.148-2.149)
+    c2 = -sp * P[0] + cp * P[1]
+    c3 = P[2]
+    e = g.rb - c1
+    k = g.m**2 - g.n**2 - e**2 - c2**2 - c3**2
+    rho = jnp.sqrt(e**2 + c3**2)
+    cosine = k / (2.0 * g.n * rho)
+    ok = jnp.all(jnp.abs(cosine) <= 1.0)
+    phi = jnp.arctan2(c3, e)
+    theta = phi + jnp.arccos(jnp.clip(cosine, -1.0, 1.0))  # elbow-out branch
+    return jnp.arctan2(jnp.sin(theta), jnp.cos(theta)), ok
+
+
+def grid(center=(0.0, 0.0, -1.0), spacing=0.1, n=5):
+    """The n x n x n measurement/compensation grid of §4.4.2 (default 125 points, 400 mm cube)."""
+    ax = (np.arange(n) - (n - 1) / 2.0) * spacing
+    X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
+    return np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=-1) + np.asarray(center, float)
+
+
+# -- closure of the Table 4.6 MCPC model -------------------------------------------------------
+ACTUATORS = (2, 3, 4)
+ROD1 = (5, 6, 7, 8, 9)  # universal 5-6, rod 7, ball 7-8-9; body 9 is the nacelle
+NACELLE, TOOL = 9, 30
+CLOSURES = (10, 11, 12, 13, 14)  # nacelle ends of rods 2-6 (spherical closures)
+RODS = ((15, 16, 17), (18, 19, 20), (21, 22, 23), (24, 25, 26), (27, 28, 29))  # universal + rod end
+R_NACELLE = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # nominal nacelle frame, Rz(-pi/2)
+_BALL = np.asarray(rot_x(np.pi / 2) @ rot_y(-np.pi / 2))  # constant part of the ball joint 7-8-9
+
+
+def check_structure(robot):
+    """Raise if `robot` is not laid out as Table 4.6 (the closure below relies on that layout)."""
+    if len(robot.bodies) != 30 or robot.tip != TOOL - 1:
+        raise ValueError(f"robot {robot.name!r} is not the 30-body Delta model of Table 4.6")
+    pairs = dict(zip(CLOSURES, (r[2] for r in RODS)))
+    for k, body in enumerate(robot.bodies, start=1):
+        want = 2 if k in pairs else (3 if k in (1, TOOL) else 0)
+        if body.kind != want or bool(body.inputs) != (k in ACTUATORS):
+            raise ValueError(f"robot {robot.name!r}, body {k}: type {body.kind} does not match Table 4.6")
+
+
+def _row(robot, a, k):
+    a_ext = jnp.append(a, 0.0)
+    return a_ext[jnp.array(robot.bodies[k - 1].rows)]
+
+
+def _local(robot, a, k, qk=0.0):
+    return cv.mcpc_frame(_row(robot, a, k), robot.bodies[k - 1].kind, jnp.reshape(qk, (1,)))
+
+
+def _fixed(robot, a, q):
+    """Everything that does not depend on the free joints: actuated arm frames, the elbow frames
+    at zero joint angle, the universal centres c_k and rod lengths L_k of rods 2-6."""
+    base = _local(robot, a, 1)
+    arms = {k: base.compose(_local(robot, a, k, q[i])) for i, k in enumerate(ACTUATORS)}
+    pre, centres, lengths = [], [], []
+    for e1, e2, end in RODS:
+        f1 = arms[robot.bodies[e1 - 1].parent + 1].compose(_local(robot, a, e1))
+        f2 = f1.compose(_local(robot, a, e2))
+        pre.append(f1.R)
+        centres.append(f2.p)
+        row = _row(robot, a, end)
+        lengths.append(jnp.sqrt(row[3] ** 2 + row[4] ** 2))
+    elbow1 = arms[robot.bodies[ROD1[0] - 1].parent + 1].compose(_local(robot, a, ROD1[0]))
+    return {"arm1": arms[robot.bodies[ROD1[0] - 1].parent + 1], "elbow1": elbow1, "pre": jnp.stack(pre),
+            "centres": jnp.stack(centres), "lengths": jnp.stack(lengths)}
+
+
+def _nacelle(robot, a, fixed, x):
+    """Nacelle frame (body 9) for the rod-1 joint values x = (q5, q6, q7, q8, q9)."""
+    f = fixed["arm1"]
+    for k, xk in zip(ROD1, x):
+        f = f.compose(_local(robot, a, k, xk))
+    return f
+
+
+def _closure_points(robot, a, nacelle):
+    return jnp.stack([nacelle.compose(_local(robot, a, k)).p for k in CLOSURES])
+
+
+def _sphere_residual(robot, a, fixed, x):
+    """F(x) = |o_k - c_k| - L_k for the five nacelle closure points (m)."""
+    pts = _closure_points(robot, a, _nacelle(robot, a, fixed, x))
+    return jnp.linalg.norm(pts - fixed["centres"], axis=-1) - fixed["lengths"]
+
+
+def _universal_angles(R_pre, u):
+    """Joint angles (qa, qb) of a universal joint whose rod direction is Rz(qa) Rx(pi/2) Rz(qb) e1
+    = (cos qa cos qb, sin qa cos qb, sin qb) in the frame R_pre; u is a unit vector in the world."""
+    v = R_pre.T @ u
+    return jnp.arctan2(v[1], v[0]), jnp.arctan2(v[2], jnp.hypot(v[0], v[1]))
+
+
+def _start(robot, a, q, fixed, tool_offset):
+    """Rod-1 joint values from the nominal direct solution (nacelle centre P, nacelle parallel
+    to the base): universal angles from the rod direction, ball angles from the nacelle
+    orientation (R6^T R9 C^T = Rz(q7) Ry(-q8) Rx(-q9), a Z-Y-X decomposition)."""
+    theta = q + jnp.stack([_row(robot, a, k)[2] for k in ACTUATORS])
+    P, ok = direct(theta)
+    o9 = P - R_NACELLE @ tool_offset
+    f6 = fixed["elbow1"].compose(_local(robot, a, ROD1[1]))
+    u = o9 - f6.p
+    q5, q6 = _universal_angles(fixed["elbow1"].R, u / jnp.linalg.norm(u))
+    f6 = _nacelle(robot, a, fixed, (q5, q6))  # frame 6 with the solved universal angles
+    N = f6.R.T @ jnp.asarray(R_NACELLE) @ jnp.asarray(_BALL).T
+    q7 = jnp.arctan2(N[1, 0], N[0, 0])
+    q8 = jnp.arctan2(N[2, 0], jnp.hypot(N[2, 1], N[2, 2]))
+    q9 = -jnp.arctan2(N[2, 1], N[2, 2])
+    return jnp.stack([q5, q6, q7, q8, q9]), ok
+
+
+def _residual_and_jacobian(robot, a, fixed, x):
+    """F(x) and its Jacobian dF/dx. Each rod-1 joint j turns about its axis z_j through o_j, so
+    a nacelle point moves by z_j x (p - o_j) and dF_k/dq_j = n_k . (z_j x (p_k - o_j)) with n_k
+    the unit rod direction (the geometric Jacobian; a test checks it against jax.jacfwd)."""
+    f, axes, origins = fixed["arm1"], [], []
+    for k, xk in zip(ROD1, x):
+        f = f.compose(_local(robot, a, k, xk))
+        axes.append(f.R[:, 2])
+        origins.append(f.p)
+    pts = _closure_points(robot, a, f)
+    d = pts - fixed["centres"]
+    dist = jnp.linalg.norm(d, axis=-1)
+    n = d / dist[:, None]
+    moves = jnp.cross(jnp.stack(axes)[None, :, :], pts[:, None, :] - jnp.stack(origins)[None, :, :])  # (5 points, 5 joints, 3)
+    return dist - fixed["lengths"], jnp.einsum("kc,kjc->kj", n, moves)
+
+
+def _newton(robot, a, fixed, x0):
+    """Newton on the square 5 x 5 sphere system until max |F| <= NEWTON_TOL (at most NEWTON_STEPS)."""
+
+    def step(carry):
+        x, _, i = carry
+        F, J = _residual_and_jacobian(robot, a, fixed, x)
+        return x - jnp.linalg.solve(J, F), jnp.max(jnp.abs(F)), i + 1
+
+    def more(carry):
+        _, err, i = carry
+        return (err > NEWTON_TOL) & (i < NEWTON_STEPS)
+
+    return jax.lax.while_loop(more, step, (x0, jnp.inf, 0))[0]
+
+
+def _tool_offset(robot):
+    """Tool point in the nacelle frame at the nominal parameters (row 30)."""
+    return _local(robot, robot.nominal, TOOL).p
+
+
+def _rod_angles(robot, a, fixed, nacelle):
+    """Universal angles of rods 2-6 pointing each rod end at its nacelle closure point."""
+    pts = _closure_points(robot, a, nacelle)
+    out = []
+    for k in range(len(RODS)):
+        u = pts[k] - fixed["centres"][k]
+        out.append(_universal_angles(fixed["pre"][k], u / jnp.linalg.norm(u)))
+    return out
+
+
+def closure_error(robot, a, q, nacelle, rods):
+    """Norm of the 15 spherical-closure position residuals: each nacelle closure point against
+    the end of its rod, built joint by joint (elbow at the actuated arm, universal angles
+    `rods`, spin joint at 0)."""
+    base = _local(robot, a, 1)
+    arms = {k: base.compose(_local(robot, a, k, q[i])) for i, k in enumerate(ACTUATORS)}
+    pts = _closure_points(robot, a, nacelle)
+    res = []
+    for k, ((e1, e2, end), (qa, qb)) in enumerate(zip(RODS, rods)):
+        f = arms[robot.bodies[e1 - 1].parent + 1]
+        f = f.compose(_local(robot, a, e1, qa)).compose(_local(robot, a, e2, qb)).compose(_local(robot, a, end))
+        res.append(pts[k] - f.p)
+    return jnp.linalg.norm(jnp.stack(res))
+
+
+def solve_single(robot, a, q):
+    """Closed Delta for one actuator vector q (3,): (rod-1 joints x (5,), rod angles, nacelle Pose,
+    ok). x is differentiable in a and q by the implicit function theorem."""
+    a_sg, q_sg = jax.lax.stop_gradient(a), jax.lax.stop_gradient(q)
+    fixed_sg = _fixed(robot, a_sg, q_sg)
+    x0, ok_start = _start(robot, a_sg, q_sg, fixed_sg, _tool_offset(robot))
+    x_star = jax.lax.stop_gradient(_newton(robot, a_sg, fixed_sg, x0))
+    finite = jnp.all(jnp.isfinite(x_star))
+    x_star = jnp.where(finite, x_star, jnp.where(jnp.all(jnp.isfinite(x0)), x0, 0.0))
+    _, J = _residual_and_jacobian(robot, a_sg, fixed_sg, x_star)
+    fixed = _fixed(robot, a, q)
+    x = x_star - jnp.linalg.solve(J, _sphere_residual(robot, a, fixed, x_star))  # zero step; carries dx/d(a, q)
+    nacelle = _nacelle(robot, a, fixed, x)
+    rods = _rod_angles(robot, a, fixed, nacelle)
+    nacelle_sg = _nacelle(robot, a_sg, fixed_sg, x_star)
+    err = closure_error(robot, a_sg, q_sg, nacelle_sg, _rod_angles(robot, a_sg, fixed_sg, nacelle_sg))
+    ok = ok_start & finite & (err <= CLOSURE_TOL)
+    return x, rods, nacelle, ok
+
+
+def _tool(robot, a, q):
+    _, _, nacelle, ok = solve_single(robot, a, q)
+    return nacelle.compose(_local(robot, a, TOOL)), ok
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def forward(robot, a, q):
+    """Tool pose (Pose with (..., 3, 3), (..., 3)) and closure flags (...,) of the Table 4.6 Delta
+    for actuator settings q (..., 3)."""
+    a = jnp.asarray(a, dtype=jnp.float64)
+    q = jnp.asarray(q, dtype=jnp.float64)
+    fn = functools.partial(_tool, robot, a)
+    if q.ndim == 1:
+        return fn(q)
+    lead = q.shape[:-1]
+    pose, ok = jax.vmap(fn)(q.reshape(-1, 3))
+    return Pose(pose.R.reshape(lead + (3, 3)), pose.p.reshape(lead + (3,))), ok.reshape(lead)
