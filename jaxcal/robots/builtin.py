@@ -5,6 +5,8 @@ from __future__ import annotations
 import functools
 import os
 
+import numpy as np
+
 from jaxcal.robots.io import load_robot
 
 _REGISTRY: dict = {}
@@ -52,3 +54,23 @@ def stanford():
     """Stanford RRP3R manipulator of seed 001 Table 1 (43 parameters: theta0, r0, five per frame
     1..7 and the gains K1..K6)."""
     return load_robot(_data_file("stanford.yaml"))
+
+
+# --- closed mechanisms: four-bars (seed 004 §2.5, Table 4.2a) -------------------------------------
+
+@register("fourbar2d")
+@functools.cache
+def fourbar2d():
+    """The 2-D four-bar of seed 004 §2.5 (Figure 2.4, eq 2.71-2.87) in the thesis' own parameters.
+
+    a = (a1..a6, phi1..phi6): link lengths and angle offsets, absolute joint angles; joint 1 is the
+    actuator theta1, joints 4 and 5 are free, the loop closes (position only) between joints 2 and 6,
+    and the tool is frame 5. The start (theta4, theta5) = (1.93, 3.32) selects the assembly mode of
+    eq 2.87 (at theta1 = pi/2 + 0.4 the closure gives theta4 = 1.92697, theta5 = 3.31575).
+    """
+    from jaxcal.closure import Closure, planar_robot
+
+    closure = Closure(pairs=((2, 6, "position"),), free=(4, 5), start=(1.93, 3.32))
+    return planar_robot("fourbar2d", lengths=[0.95, 0.0, 0.9, 1.1, 0.9, 0.0], offsets=[0.0] * 6,
+                        predecessors=[0, 1, 0, 3, 4, 5], actuated=(1,), closure=closure, tip=5,
+                        home=[np.pi / 2 + 0.4], q_min=[np.pi / 2 - 0.6], q_max=[np.pi / 2 + 1.2])

@@ -1,0 +1,20 @@
+"""Loop closure for closed mechanisms (seed 004 ch. 2): LM closure with implicit differentiation,
+planar absolute-angle bodies, mobility analysis. See docs/closure.md."""
+
+from jaxcal.closure.core import (
+    CLOSED_TOL,
+    FAIL_OFFSET,
+    Closure,
+    ClosureSolution,
+    all_frames,
+    closed,
+    closure_residual,
+    forward_closed,
+    open_tree,
+    solve,
+    tree_frames,
+)
+from jaxcal.closure.planar import planar_frames, planar_robot
+
+__all__ = ["CLOSED_TOL", "FAIL_OFFSET", "Closure", "ClosureSolution", "all_frames", "closed", "closure_residual",
+           "forward_closed", "open_tree", "planar_frames", "planar_robot", "solve", "tree_frames"]

@@ -1,0 +1,228 @@
+"""Loop closure of trees with closure pairs (seed 004 §2.3-2.4).
+
+A closed mechanism is described as an open tree (MCPC rows, or the planar absolute-angle bodies of
+`jaxcal.closure.planar`) plus a `Closure`: which body frames must coincide (closure pairs), which
+non-actuated joints are free, and the free-joint start that selects the assembly mode.
+
+Closure (seed 004 eq 2.19-2.25): with g_p = [r_0p; eta_p] the position and Euler parameters of
+frame p, find theta_free minimising sum_i v_i^T Wc v_i with v_i = g_{p_i} - g_{q_i}; at a spherical
+closure only the position rows are kept. The minimiser is optimistix's Levenberg-Marquardt,
+differentiated by the implicit function theorem (`optx.ImplicitAdjoint`), so `jax.jacfwd` of
+`forward_closed` with respect to `a` is the closed-loop Jacobian of eq 2.65/2.69.
+
+Failure is data: the thesis' check (|v| > 1e-10 after convergence) flags a sample; `solve` returns
+the flag and `forward_closed` moves a flagged sample's position by `FAIL_OFFSET` metres (finite,
+no NaN, but far from any reading) so a fit step that makes a sample infeasible raises the cost
+and is rejected by the line search / trust region, as the thesis returns Inf (§3.3).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+
+from jaxcal.kin.model import Robot, _batched, frames_single, joint_variables
+from jaxcal.kin.pose import Pose
+from jaxcal.kin.rotations import quat_from_matrix
+
+CLOSURE_KINDS = ("full", "position")
+FAIL_OFFSET = 1.0e3  # metres added to each coordinate of a sample whose loops do not close
+CLOSED_TOL = 1e-10  # seed 004 §2.4.1: residual norm above this is a failure to close
+
+
+@dataclasses.dataclass(frozen=True)
+class Closure:
+    """How a tree is closed. Bodies are numbered 1..N as in the seed's Table 4.1.
+
+    pairs: (p, q, kind) closure pairs; kind "full" matches position and Euler parameters (rotary and
+        prismatic closures), "position" matches position only (spherical closures, eq 2.23).
+    free: bodies whose joint variable is solved by closure, in the order of theta_free.
+    start: default theta_free start (selects the assembly mode).
+    w_position, w_orientation: diagonal of the weighting matrix Wc (eq 2.25).
+    """
+
+    pairs: tuple[tuple[int, int, str], ...]
+    free: tuple[int, ...]
+    start: tuple[float, ...]
+    w_position: float = 1.0
+    w_orientation: float = 1.0
+    tol: float = CLOSED_TOL
+    max_steps: int = 100
+
+    def __post_init__(self):
+        for k, (p, q, kind) in enumerate(self.pairs):
+            if kind not in CLOSURE_KINDS:
+                raise ValueError(f"closure pair {k} ({p}, {q}): kind must be one of {CLOSURE_KINDS}, got {kind!r}")
+            if p == q or p < 1 or q < 1:
+                raise ValueError(f"closure pair {k}: bodies must be two different body numbers >= 1, got ({p}, {q})")
+        if len(self.start) != len(self.free):
+            raise ValueError(f"closure start has {len(self.start)} values for {len(self.free)} free joints")
+        if len(set(self.free)) != len(self.free):
+            raise ValueError(f"closure free joints repeat a body: {self.free}")
+
+    @property
+    def n_free(self) -> int:
+        return len(self.free)
+
+    @property
+    def n_rows(self) -> int:
+        """Rows of the closure residual v (eq 2.67): 7 per full pair, 3 per position pair."""
+        return sum(7 if kind == "full" else 3 for _, _, kind in self.pairs)
+
+
+class ClosureSolution(NamedTuple):
+    """Free joint values, weighted residual norm |v| and the closed flag (|v| <= tol), per sample."""
+
+    theta_free: jnp.ndarray
+    residual_norm: jnp.ndarray
+    ok: jnp.ndarray
+    steps: jnp.ndarray
+
+
+def _check(robot: Robot) -> Closure:
+    c = robot.closure
+    if not isinstance(c, Closure):
+        raise ValueError(f"robot {robot.name!r} has no jaxcal.closure.Closure description (closure={c!r})")
+    n = len(robot.bodies)
+    for p, q, _ in c.pairs:
+        if max(p, q) > n:
+            raise ValueError(f"robot {robot.name!r}: closure pair ({p}, {q}) names a body beyond {n}")
+    for b in c.free:
+        if not 1 <= b <= n:
+            raise ValueError(f"robot {robot.name!r}: free joint {b} is not a body 1..{n}")
+        if robot.bodies[b - 1].inputs:
+            raise ValueError(f"robot {robot.name!r}: body {b} is actuated and cannot be a free joint")
+    return c
+
+
+@functools.cache
+def open_tree(robot: Robot) -> Robot:
+    """The tree with every free joint turned into an input after the actuated ones (closure removed).
+
+    Its joint vector is [joint_variables(q), theta_free]; gains/coupling are applied before.
+    """
+    c = _check(robot)
+    n_act = robot.n_inputs
+    bodies = list(robot.bodies)
+    for k, b in enumerate(c.free):
+        bodies[b - 1] = dataclasses.replace(bodies[b - 1], inputs=(n_act + k,))
+    return robot.replace(bodies=tuple(bodies), closure=None, gains=None, coupling_joint=None, coupling_motor=None,
+                         joint_names=robot.joint_names + tuple(f"j{b}" for b in c.free))
+
+
+def tree_frames(robot: Robot, a, qj, theta_free) -> Pose:
+    """All body frames of the open tree for joint variables qj (actuated) and theta_free."""
+    tree = open_tree(robot)
+    theta = jnp.concatenate([qj, theta_free])
+    if tree.bodies[0].convention == "planar":
+        from jaxcal.closure.planar import planar_frames
+
+        return planar_frames(tree, a, theta)
+    return frames_single(tree, a, theta)
+
+
+def euler_parameters(R):
+    """Euler parameters (eta0, eta1, eta2, eta3) of a rotation (seed 004 eq A.15-A.18)."""
+    return quat_from_matrix(R)
+
+
+def closure_residual(robot: Robot, a, qj, theta_free):
+    """v of eq 2.67 weighted by Wc^(1/2): stacked g_p - g_q over the closure pairs."""
+    c = robot.closure
+    f = tree_frames(robot, a, qj, theta_free)
+    parts = []
+    for p, q, kind in c.pairs:
+        parts.append(c.w_position * (f.p[p - 1] - f.p[q - 1]))
+        if kind == "full":
+            ep, eq = euler_parameters(f.R[p - 1]), euler_parameters(f.R[q - 1])
+            sign = jnp.where(jnp.dot(ep, eq) < 0, -1.0, 1.0)  # q and -q are the same rotation
+            parts.append(c.w_orientation * (ep - sign * eq))
+    return jnp.concatenate(parts)
+
+
+def _lm():
+    return optx.LevenbergMarquardt(rtol=1e-13, atol=1e-14)
+
+
+def _solve_single(robot: Robot, a, qj, start) -> ClosureSolution:
+    c = robot.closure
+
+    def fn(theta, args):
+        return closure_residual(robot, args[0], args[1], theta)
+
+    sol = optx.least_squares(fn, _lm(), start, args=(a, qj), max_steps=c.max_steps, throw=False,
+                             adjoint=optx.ImplicitAdjoint())
+    finite = jnp.all(jnp.isfinite(sol.value))
+    theta = jnp.where(finite, sol.value, start)
+    norm = jnp.linalg.norm(fn(jax.lax.stop_gradient(theta), (jax.lax.stop_gradient(a), qj)))
+    ok = finite & (norm <= c.tol)
+    return ClosureSolution(theta, jnp.where(finite, norm, jnp.inf), ok, sol.stats["num_steps"])
+
+
+def _start(robot: Robot, start):
+    s = robot.closure.start if start is None else start
+    return jnp.asarray(s, dtype=jnp.float64)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _solve_batched(robot: Robot, a, q, start) -> ClosureSolution:
+    def one(qi):
+        return _solve_single(robot, a, joint_variables(robot, a, qi), start)
+
+    return _batched(one, q)
+
+
+def solve(robot: Robot, a, q, start=None) -> ClosureSolution:
+    """Close the loops for actuator settings q (..., n_inputs): free joints, |v|, ok flag per sample.
+
+    start: theta_free start (default `robot.closure.start`, the robot's assembly mode).
+    """
+    _check(robot)
+    a = jnp.asarray(a, dtype=jnp.float64)
+    q = jnp.asarray(q, dtype=jnp.float64)
+    return _solve_batched(robot, a, q, _start(robot, start))
+
+
+def _forward_single(robot: Robot, a, qi, start) -> Pose:
+    qj = joint_variables(robot, a, qi)
+    sol = _solve_single(robot, a, qj, start)
+    f = tree_frames(robot, a, qj, sol.theta_free)
+    R, p = f.R[robot.tip], f.p[robot.tip]
+    p = jnp.where(sol.ok, p, jax.lax.stop_gradient(p) + FAIL_OFFSET)
+    return Pose(R, p)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _forward_batched(robot: Robot, a, q, start) -> Pose:
+    return _batched(lambda qi: _forward_single(robot, a, qi, start), q)
+
+
+def forward_closed(robot: Robot, a, q, start=None) -> Pose:
+    """Tool frame of a closed mechanism (closure solved inside) for q (..., n_inputs).
+
+    A sample whose loops do not close (|v| > tol) has FAIL_OFFSET added to its position; check
+    `solve(...).ok` or `closed(...)` for the flags.
+    """
+    _check(robot)
+    a = jnp.asarray(a, dtype=jnp.float64)
+    q = jnp.asarray(q, dtype=jnp.float64)
+    return _forward_batched(robot, a, q, _start(robot, start))
+
+
+def closed(robot: Robot, a, q, start=None):
+    """Per-sample boolean flags: True where the loops close to |v| <= tol."""
+    return solve(robot, a, q, start).ok
+
+
+def all_frames(robot: Robot, a, q, start=None) -> Pose:
+    """Every body frame of the closed mechanism for one actuator setting q (n_inputs,)."""
+    a = jnp.asarray(a, dtype=jnp.float64)
+    q = jnp.asarray(q, dtype=jnp.float64)
+    qj = joint_variables(robot, a, q)
+    sol = solve(robot, a, q, start)
+    return tree_frames(robot, a, qj, sol.theta_free)

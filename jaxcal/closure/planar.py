@@ -1,0 +1,61 @@
+"""Planar bodies with absolute joint angles: the parametrisation of the thesis' 2-D four-bar (seed 004 §2.5).
+
+Each body j carries a length a_j and an angle offset phi_j; its frame has the absolute angle
+psi_j = theta_j + phi_j (theta_j its joint variable, 0 for a joint without one) and its origin is
+at the end of its predecessor's link: r_j = r_pred + a_pred (cos psi_pred, sin psi_pred, 0), with
+r_j = 0 for a body on the base (eq 2.72-2.76). The parameter vector is (a_1..a_N, phi_1..phi_N).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.closure.core import Closure
+from jaxcal.kin.model import Body, Robot
+from jaxcal.kin.pose import Pose
+from jaxcal.kin.rotations import rot_z
+
+
+def planar_frames(robot: Robot, a, theta) -> Pose:
+    """Frames of every planar body for joint variables theta (indexed by Body.inputs)."""
+    psi, pos = [], []
+    zero = jnp.zeros((), dtype=jnp.float64)
+    for b in robot.bodies:
+        th = theta[b.inputs[0]] if b.inputs else zero
+        psi.append(a[b.rows[1]] + th)
+        if b.parent < 0:
+            pos.append(jnp.zeros(3, dtype=jnp.float64))
+        else:
+            length, angle = a[robot.bodies[b.parent].rows[0]], psi[b.parent]
+            pos.append(pos[b.parent] + length * jnp.stack([jnp.cos(angle), jnp.sin(angle), zero]))
+    return Pose(jnp.stack([rot_z(s) for s in psi]), jnp.stack(pos))
+
+
+def planar_robot(name, lengths, offsets, predecessors, actuated, closure: Closure, tip, home=None,
+                 q_min=None, q_max=None) -> Robot:
+    """Robot of planar absolute-angle bodies 1..N (predecessor 0 = base).
+
+    Parameters are named "j{i}.a" (lengths) then "j{i}.phi" (offsets), i = 1..N.
+    """
+    n = len(lengths)
+    if len(offsets) != n or len(predecessors) != n:
+        raise ValueError(f"planar robot {name!r}: lengths, offsets and predecessors must have one entry per body ({n})")
+    bodies = []
+    for i, pred in enumerate(predecessors, start=1):
+        if not 0 <= int(pred) < i:
+            raise ValueError(f"planar robot {name!r}, body {i}: predecessor {pred} must name an earlier body (0 = base)")
+        inputs = (list(actuated).index(i),) if i in actuated else ()
+        bodies.append(Body(f"j{i}", "planar", 0, int(pred) - 1, (i - 1, n + i - 1), inputs))
+    names = tuple(f"j{i}.a" for i in range(1, n + 1)) + tuple(f"j{i}.phi" for i in range(1, n + 1))
+    n_in = len(actuated)
+    return Robot(
+        name=name, bodies=tuple(bodies), names=names,
+        nominal_np=np.concatenate([np.asarray(lengths, float), np.asarray(offsets, float)]),
+        units=("length",) * n + ("angle",) * n, free_mask=np.ones(2 * n, bool), priority=np.ones(2 * n),
+        joint_names=tuple(f"j{i}" for i in actuated),
+        home_np=np.zeros(n_in) if home is None else np.asarray(home, float),
+        q_min=np.full(n_in, -np.pi) if q_min is None else np.asarray(q_min, float),
+        q_max=np.full(n_in, np.pi) if q_max is None else np.asarray(q_max, float),
+        tip=tip - 1, closure=closure,
+    )
