@@ -35,7 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.kin import conventions as cv
+from jaxcal.closure.core import FAIL_OFFSET, Closure, ClosureSolution
+from jaxcal.kin.model import joint_variables
 from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import rot_x, rot_y
 
@@ -133,55 +134,73 @@ def check_structure(robot):
     """Raise if `robot` is not laid out as Table 4.6 (the closure below relies on that layout)."""
     if len(robot.bodies) != 30 or robot.tip != TOOL - 1:
         raise ValueError(f"robot {robot.name!r} is not the 30-body Delta model of Table 4.6")
-    pairs = dict(zip(CLOSURES, (r[2] for r in RODS)))
     for k, body in enumerate(robot.bodies, start=1):
-        want = 2 if k in pairs else (3 if k in (1, TOOL) else 0)
+        want = 2 if k in CLOSURES else (3 if k in (1, TOOL) else 0)
         if body.kind != want or bool(body.inputs) != (k in ACTUATORS):
             raise ValueError(f"robot {robot.name!r}, body {k}: type {body.kind} does not match Table 4.6")
 
 
-def _row(robot, a, k):
-    a_ext = jnp.append(a, 0.0)
-    return a_ext[jnp.array(robot.bodies[k - 1].rows)]
+def _statics(robot, a):
+    """The joint-independent part of every body transform, for all 30 bodies at once:
+    T_k = [V_k, t_k] Rz(a3_k + q_k) Trans(0, 0, d3_k) with V_k = Rx(a1) Ry(a2), t_k = V_k (d1, d2, 0)
+    (the MCPC transform of `jaxcal.kin.conventions.mcpc_frame`)."""
+    a_ext = jnp.append(jnp.asarray(a, dtype=jnp.float64), 0.0)
+    rows = a_ext[jnp.array([b.rows for b in robot.bodies])]  # (30, 6); unused entries read 0
+    c1, s1, c2, s2 = jnp.cos(rows[:, 0]), jnp.sin(rows[:, 0]), jnp.cos(rows[:, 1]), jnp.sin(rows[:, 1])
+    zero, one = jnp.zeros_like(c1), jnp.ones_like(c1)
+    Rx = jnp.stack([jnp.stack([one, zero, zero], -1), jnp.stack([zero, c1, -s1], -1), jnp.stack([zero, s1, c1], -1)], -2)
+    Ry = jnp.stack([jnp.stack([c2, zero, s2], -1), jnp.stack([zero, one, zero], -1), jnp.stack([-s2, zero, c2], -1)], -2)
+    V = Rx @ Ry
+    t = V[:, :, 0] * rows[:, 3:4] + V[:, :, 1] * rows[:, 4:5]
+    return {"rows": rows, "V": V, "t": t}
 
 
-def _local(robot, a, k, qk=0.0):
-    return cv.mcpc_frame(_row(robot, a, k), robot.bodies[k - 1].kind, jnp.reshape(qk, (1,)))
+def _row(st, k):
+    return st["rows"][k - 1]
 
 
-def _fixed(robot, a, q):
+def _local(st, k, qk=0.0):
+    """Transform of body k relative to its parent with joint value qk (rotary, or 0)."""
+    V, row = st["V"][k - 1], st["rows"][k - 1]
+    angle = row[2] + qk
+    c, s = jnp.cos(angle), jnp.sin(angle)
+    R = jnp.stack([V[:, 0] * c + V[:, 1] * s, V[:, 1] * c - V[:, 0] * s, V[:, 2]], axis=-1)
+    return Pose(R, st["t"][k - 1] + row[5] * V[:, 2])
+
+
+def _fixed(robot, st, q):
     """Everything that does not depend on the free joints: actuated arm frames, the elbow frames
     at zero joint angle, the universal centres c_k and rod lengths L_k of rods 2-6."""
-    base = _local(robot, a, 1)
-    arms = {k: base.compose(_local(robot, a, k, q[i])) for i, k in enumerate(ACTUATORS)}
+    base = _local(st, 1)
+    arms = {k: base.compose(_local(st, k, q[i])) for i, k in enumerate(ACTUATORS)}
     pre, centres, lengths = [], [], []
     for e1, e2, end in RODS:
-        f1 = arms[robot.bodies[e1 - 1].parent + 1].compose(_local(robot, a, e1))
-        f2 = f1.compose(_local(robot, a, e2))
+        f1 = arms[robot.bodies[e1 - 1].parent + 1].compose(_local(st, e1))
+        f2 = f1.compose(_local(st, e2))
         pre.append(f1.R)
         centres.append(f2.p)
-        row = _row(robot, a, end)
+        row = _row(st, end)
         lengths.append(jnp.sqrt(row[3] ** 2 + row[4] ** 2))
-    elbow1 = arms[robot.bodies[ROD1[0] - 1].parent + 1].compose(_local(robot, a, ROD1[0]))
+    elbow1 = arms[robot.bodies[ROD1[0] - 1].parent + 1].compose(_local(st, ROD1[0]))
     return {"arm1": arms[robot.bodies[ROD1[0] - 1].parent + 1], "elbow1": elbow1, "pre": jnp.stack(pre),
             "centres": jnp.stack(centres), "lengths": jnp.stack(lengths)}
 
 
-def _nacelle(robot, a, fixed, x):
+def _nacelle(robot, st, fixed, x):
     """Nacelle frame (body 9) for the rod-1 joint values x = (q5, q6, q7, q8, q9)."""
     f = fixed["arm1"]
     for k, xk in zip(ROD1, x):
-        f = f.compose(_local(robot, a, k, xk))
+        f = f.compose(_local(st, k, xk))
     return f
 
 
-def _closure_points(robot, a, nacelle):
-    return jnp.stack([nacelle.compose(_local(robot, a, k)).p for k in CLOSURES])
+def _closure_points(robot, st, nacelle):
+    return jnp.stack([nacelle.compose(_local(st, k)).p for k in CLOSURES])
 
 
-def _sphere_residual(robot, a, fixed, x):
+def _sphere_residual(robot, st, fixed, x):
     """F(x) = |o_k - c_k| - L_k for the five nacelle closure points (m)."""
-    pts = _closure_points(robot, a, _nacelle(robot, a, fixed, x))
+    pts = _closure_points(robot, st, _nacelle(robot, st, fixed, x))
     return jnp.linalg.norm(pts - fixed["centres"], axis=-1) - fixed["lengths"]
 
 
@@ -192,17 +211,17 @@ def _universal_angles(R_pre, u):
     return jnp.arctan2(v[1], v[0]), jnp.arctan2(v[2], jnp.hypot(v[0], v[1]))
 
 
-def _start(robot, a, q, fixed, tool_offset):
+def _start(robot, st, q, fixed, tool_offset):
     """Rod-1 joint values from the nominal direct solution (nacelle centre P, nacelle parallel
     to the base): universal angles from the rod direction, ball angles from the nacelle
     orientation (R6^T R9 C^T = Rz(q7) Ry(-q8) Rx(-q9), a Z-Y-X decomposition)."""
-    theta = q + jnp.stack([_row(robot, a, k)[2] for k in ACTUATORS])
+    theta = q + jnp.stack([_row(st, k)[2] for k in ACTUATORS])
     P, ok = direct(theta)
     o9 = P - R_NACELLE @ tool_offset
-    f6 = fixed["elbow1"].compose(_local(robot, a, ROD1[1]))
+    f6 = fixed["elbow1"].compose(_local(st, ROD1[1]))
     u = o9 - f6.p
     q5, q6 = _universal_angles(fixed["elbow1"].R, u / jnp.linalg.norm(u))
-    f6 = _nacelle(robot, a, fixed, (q5, q6))  # frame 6 with the solved universal angles
+    f6 = _nacelle(robot, st, fixed, (q5, q6))  # frame 6 with the solved universal angles
     N = f6.R.T @ jnp.asarray(R_NACELLE) @ jnp.asarray(_BALL).T
     q7 = jnp.arctan2(N[1, 0], N[0, 0])
     q8 = jnp.arctan2(N[2, 0], jnp.hypot(N[2, 1], N[2, 2]))
@@ -210,16 +229,16 @@ def _start(robot, a, q, fixed, tool_offset):
     return jnp.stack([q5, q6, q7, q8, q9]), ok
 
 
-def _residual_and_jacobian(robot, a, fixed, x):
+def _residual_and_jacobian(robot, st, fixed, x):
     """F(x) and its Jacobian dF/dx. Each rod-1 joint j turns about its axis z_j through o_j, so
     a nacelle point moves by z_j x (p - o_j) and dF_k/dq_j = n_k . (z_j x (p_k - o_j)) with n_k
     the unit rod direction (the geometric Jacobian; a test checks it against jax.jacfwd)."""
     f, axes, origins = fixed["arm1"], [], []
     for k, xk in zip(ROD1, x):
-        f = f.compose(_local(robot, a, k, xk))
+        f = f.compose(_local(st, k, xk))
         axes.append(f.R[:, 2])
         origins.append(f.p)
-    pts = _closure_points(robot, a, f)
+    pts = _closure_points(robot, st, f)
     d = pts - fixed["centres"]
     dist = jnp.linalg.norm(d, axis=-1)
     n = d / dist[:, None]
@@ -227,12 +246,12 @@ def _residual_and_jacobian(robot, a, fixed, x):
     return dist - fixed["lengths"], jnp.einsum("kc,kjc->kj", n, moves)
 
 
-def _newton(robot, a, fixed, x0):
+def _newton(robot, st, fixed, x0):
     """Newton on the square 5 x 5 sphere system until max |F| <= NEWTON_TOL (at most NEWTON_STEPS)."""
 
     def step(carry):
         x, _, i = carry
-        F, J = _residual_and_jacobian(robot, a, fixed, x)
+        F, J = _residual_and_jacobian(robot, st, fixed, x)
         return x - jnp.linalg.solve(J, F), jnp.max(jnp.abs(F)), i + 1
 
     def more(carry):
@@ -244,12 +263,12 @@ def _newton(robot, a, fixed, x0):
 
 def _tool_offset(robot):
     """Tool point in the nacelle frame at the nominal parameters (row 30)."""
-    return _local(robot, robot.nominal, TOOL).p
+    return _local(_statics(robot, robot.nominal_np), TOOL).p
 
 
-def _rod_angles(robot, a, fixed, nacelle):
+def _rod_angles(robot, st, fixed, nacelle):
     """Universal angles of rods 2-6 pointing each rod end at its nacelle closure point."""
-    pts = _closure_points(robot, a, nacelle)
+    pts = _closure_points(robot, st, nacelle)
     out = []
     for k in range(len(RODS)):
         u = pts[k] - fixed["centres"][k]
@@ -257,55 +276,127 @@ def _rod_angles(robot, a, fixed, nacelle):
     return out
 
 
-def closure_error(robot, a, q, nacelle, rods):
+def closure_error(robot, st, q, nacelle, rods):
     """Norm of the 15 spherical-closure position residuals: each nacelle closure point against
     the end of its rod, built joint by joint (elbow at the actuated arm, universal angles
     `rods`, spin joint at 0)."""
-    base = _local(robot, a, 1)
-    arms = {k: base.compose(_local(robot, a, k, q[i])) for i, k in enumerate(ACTUATORS)}
-    pts = _closure_points(robot, a, nacelle)
+    base = _local(st, 1)
+    arms = {k: base.compose(_local(st, k, q[i])) for i, k in enumerate(ACTUATORS)}
+    pts = _closure_points(robot, st, nacelle)
     res = []
     for k, ((e1, e2, end), (qa, qb)) in enumerate(zip(RODS, rods)):
         f = arms[robot.bodies[e1 - 1].parent + 1]
-        f = f.compose(_local(robot, a, e1, qa)).compose(_local(robot, a, e2, qb)).compose(_local(robot, a, end))
+        f = f.compose(_local(st, e1, qa)).compose(_local(st, e2, qb)).compose(_local(st, end))
         res.append(pts[k] - f.p)
     return jnp.linalg.norm(jnp.stack(res))
 
 
+def structure_ok(robot, st):
+    """True when the fixed entries the reduction relies on hold: the universal joints of rods 2-6
+    are perpendicular and centred on the elbow axis (rows 16, 19, ...: a1 = pi/2, a2 = a3 = d1 = 0)
+    and the rod ends lie on the rod axis (rows 17, 20, ...: a1 = a2 = d2 = 0)."""
+    dev = []
+    for _, e2, end in RODS:
+        r2, r3 = _row(st, e2), _row(st, end)
+        dev += [r2[0] - np.pi / 2, r2[1], r2[2], r2[3], r3[0], r3[1], r3[4]]
+    return jnp.max(jnp.abs(jnp.stack(dev))) <= 1e-12
+
+
 def solve_single(robot, a, q):
-    """Closed Delta for one actuator vector q (3,): (rod-1 joints x (5,), rod angles, nacelle Pose,
-    ok). x is differentiable in a and q by the implicit function theorem."""
-    a_sg, q_sg = jax.lax.stop_gradient(a), jax.lax.stop_gradient(q)
-    fixed_sg = _fixed(robot, a_sg, q_sg)
-    x0, ok_start = _start(robot, a_sg, q_sg, fixed_sg, _tool_offset(robot))
-    x_star = jax.lax.stop_gradient(_newton(robot, a_sg, fixed_sg, x0))
+    """Closed Delta for one actuator vector q (3,): (rod-1 joints x (5,), rod angles, tool Pose,
+    ok, closure residual norm). x is differentiable in a and q by the implicit function theorem.
+
+    With `structure_ok`, the closure residual of pair k (nacelle point minus rod end, the rod
+    pointed at the point) has norm |F_k|, so |F| is the norm of all 15 closure residuals
+    (a test checks this against `closure_error` on the whole tree)."""
+    st = _statics(robot, a)
+    fixed = _fixed(robot, st, q)
+    st_sg, q_sg = jax.tree_util.tree_map(jax.lax.stop_gradient, (st, q))
+    fixed_sg = jax.tree_util.tree_map(jax.lax.stop_gradient, fixed)
+    x0, ok_start = _start(robot, st_sg, q_sg, fixed_sg, _tool_offset(robot))
+    x_star = jax.lax.stop_gradient(_newton(robot, st_sg, fixed_sg, x0))
     finite = jnp.all(jnp.isfinite(x_star))
     x_star = jnp.where(finite, x_star, jnp.where(jnp.all(jnp.isfinite(x0)), x0, 0.0))
-    _, J = _residual_and_jacobian(robot, a_sg, fixed_sg, x_star)
-    fixed = _fixed(robot, a, q)
-    x = x_star - jnp.linalg.solve(J, _sphere_residual(robot, a, fixed, x_star))  # zero step; carries dx/d(a, q)
-    nacelle = _nacelle(robot, a, fixed, x)
-    rods = _rod_angles(robot, a, fixed, nacelle)
-    nacelle_sg = _nacelle(robot, a_sg, fixed_sg, x_star)
-    err = closure_error(robot, a_sg, q_sg, nacelle_sg, _rod_angles(robot, a_sg, fixed_sg, nacelle_sg))
-    ok = ok_start & finite & (err <= CLOSURE_TOL)
-    return x, rods, nacelle, ok
+    F_star, J = _residual_and_jacobian(robot, st_sg, fixed_sg, x_star)
+    x = x_star - jnp.linalg.solve(J, _sphere_residual(robot, st, fixed, x_star))  # zero step; carries dx/d(a, q)
+    nacelle = _nacelle(robot, st, fixed, x)
+    rods = _rod_angles(robot, st, fixed, nacelle)
+    err = jnp.where(finite, jnp.linalg.norm(F_star), jnp.inf)
+    ok = ok_start & finite & structure_ok(robot, st_sg) & (err <= CLOSURE_TOL)
+    return x, rods, nacelle.compose(_local(st, TOOL)), ok, err
 
 
-def _tool(robot, a, q):
-    _, _, nacelle, ok = solve_single(robot, a, q)
-    return nacelle.compose(_local(robot, a, TOOL)), ok
+def _closed_single(robot, a, q):
+    """(tool Pose, theta_free in the Closure's order, closure residual norm, ok) for one q (3,)."""
+    x, rods, tool, ok, err = solve_single(robot, a, q)
+    theta_free = jnp.concatenate([x, jnp.stack([v for pair in rods for v in pair])])
+    return tool, theta_free, err, ok
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def forward(robot, a, q):
-    """Tool pose (Pose with (..., 3, 3), (..., 3)) and closure flags (...,) of the Table 4.6 Delta
-    for actuator settings q (..., 3)."""
-    a = jnp.asarray(a, dtype=jnp.float64)
+def _batch(fn, q):
     q = jnp.asarray(q, dtype=jnp.float64)
-    fn = functools.partial(_tool, robot, a)
     if q.ndim == 1:
         return fn(q)
     lead = q.shape[:-1]
-    pose, ok = jax.vmap(fn)(q.reshape(-1, 3))
-    return Pose(pose.R.reshape(lead + (3, 3)), pose.p.reshape(lead + (3,))), ok.reshape(lead)
+    out = jax.vmap(fn)(q.reshape(-1, q.shape[-1]))
+    return jax.tree_util.tree_map(lambda v: v.reshape(lead + v.shape[1:]), out)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def solve(robot, a, q) -> ClosureSolution:
+    """Closure of the Table 4.6 Delta for actuator settings q (..., 3): free joints in the order
+    of `FREE` (15,), closure residual norm, ok flag, and the Newton iterations (constant here)."""
+    a = jnp.asarray(a, dtype=jnp.float64)
+
+    def one(qi):
+        _, theta, err, ok = _closed_single(robot, a, joint_variables(robot, a, qi))
+        return ClosureSolution(theta, err, ok, jnp.asarray(NEWTON_STEPS))
+
+    return _batch(one, q)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def forward(robot, a, q) -> Pose:
+    """Tool pose of the Table 4.6 Delta for actuator settings q (..., 3), closure solved inside.
+    A sample that does not close gets FAIL_OFFSET added to its position (as `forward_closed`)."""
+    a = jnp.asarray(a, dtype=jnp.float64)
+
+    def one(qi):
+        pose, _, _, ok = _closed_single(robot, a, joint_variables(robot, a, qi))
+        return Pose(pose.R, jnp.where(ok, pose.p, jax.lax.stop_gradient(pose.p) + FAIL_OFFSET))
+
+    return _batch(one, q)
+
+
+def closed(robot, a, q):
+    """Per-sample flags: True where the Delta closes to CLOSURE_TOL."""
+    return solve(robot, a, q).ok
+
+
+@dataclasses.dataclass(frozen=True)
+class DeltaClosure(Closure):
+    """The generic closure description of the Table 4.6 Delta plus its fast path: `jc.forward`
+    calls `forward(robot, a, q)` (nominal direct solution start + Newton on the reduced square
+    system); the generic LM of `jaxcal.closure` still works from `start` near the home setting."""
+
+    def forward(self, robot, a, q) -> Pose:
+        return forward(robot, a, q)
+
+    def solve(self, robot, a, q) -> ClosureSolution:
+        return solve(robot, a, q)
+
+
+PAIRS = tuple((rod[2], c, "position") for c, rod in zip(CLOSURES, RODS))
+FREE = ROD1 + tuple(b for rod in RODS for b in rod[:2])
+
+
+def with_delta_closure(robot, free=None):
+    """The Table 4.6 robot with a `DeltaClosure` whose generic start is the closed home setting,
+    and (optionally) the free parameters given by name."""
+    check_structure(robot)
+    plain = robot.replace(closure=DeltaClosure(pairs=PAIRS, free=FREE, start=(0.0,) * len(FREE)))
+    start = solve(plain, plain.nominal, plain.home)
+    if not bool(start.ok):
+        raise ValueError(f"robot {robot.name!r}: the Delta does not close at its home setting {plain.home_np}")
+    out = robot.replace(closure=DeltaClosure(pairs=PAIRS, free=FREE, start=tuple(float(v) for v in start.theta_free)))
+    return out if free is None else out.with_free(free)

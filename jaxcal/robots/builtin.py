@@ -74,3 +74,24 @@ def fourbar2d():
     return planar_robot("fourbar2d", lengths=[0.95, 0.0, 0.9, 1.1, 0.9, 0.0], offsets=[0.0] * 6,
                         predecessors=[0, 1, 0, 3, 4, 5], actuated=(1,), closure=closure, tip=5,
                         home=[np.pi / 2 + 0.4], q_min=[np.pi / 2 - 0.6], q_max=[np.pi / 2 + 1.2])
+
+
+# --- Delta and Kiwibot (seed 004 Tables 4.6 and 4.4) ---------------------------------------------
+
+def _free_list(name: str):
+    import yaml
+
+    with open(_data_file(name)) as fh:
+        return yaml.safe_load(fh)["free"]
+
+
+@register("delta")
+@functools.cache
+def delta():
+    """The Canterbury Delta of seed 004 Table 4.6: 30 MCPC bodies, actuators 2-4 (theta1..3, rad,
+    below the horizontal), five spherical closures, tool at the nacelle centre (body 30); 74 free
+    parameters as marked in the table. Closure: nominal direct solution (§2.6) then Newton on the
+    reduced square system (`jaxcal.closure.delta`)."""
+    from jaxcal.closure.delta import with_delta_closure
+
+    return with_delta_closure(load_robot(_data_file("delta.yaml")), free=_free_list("delta.yaml"))
