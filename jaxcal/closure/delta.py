@@ -160,42 +160,50 @@ def _row(st, k):
 
 
 def _local(st, k, qk=0.0):
-    """Transform of body k relative to its parent with joint value qk (rotary, or 0)."""
-    V, row = st["V"][k - 1], st["rows"][k - 1]
-    angle = row[2] + qk
-    c, s = jnp.cos(angle), jnp.sin(angle)
-    R = jnp.stack([V[:, 0] * c + V[:, 1] * s, V[:, 1] * c - V[:, 0] * s, V[:, 2]], axis=-1)
-    return Pose(R, st["t"][k - 1] + row[5] * V[:, 2])
+    """Transform(s) of body k (an int or an array of body numbers) relative to the parent, with
+    joint value(s) qk added to a3 (rotary bodies; 0 for the others)."""
+    idx = jnp.asarray(k) - 1
+    V, row = st["V"][idx], st["rows"][idx]
+    angle = row[..., 2] + qk
+    c, s = jnp.cos(angle)[..., None], jnp.sin(angle)[..., None]
+    R = jnp.stack([V[..., 0] * c + V[..., 1] * s, V[..., 1] * c - V[..., 0] * s, V[..., 2]], axis=-1)
+    return Pose(R, st["t"][idx] + row[..., 5:6] * V[..., 2])
 
 
 def _fixed(robot, st, q):
-    """Everything that does not depend on the free joints: actuated arm frames, the elbow frames
-    at zero joint angle, the universal centres c_k and rod lengths L_k of rods 2-6."""
-    base = _local(st, 1)
-    arms = {k: base.compose(_local(st, k, q[i])) for i, k in enumerate(ACTUATORS)}
-    pre, centres, lengths = [], [], []
-    for e1, e2, end in RODS:
-        f1 = arms[robot.bodies[e1 - 1].parent + 1].compose(_local(st, e1))
-        f2 = f1.compose(_local(st, e2))
-        pre.append(f1.R)
-        centres.append(f2.p)
-        row = _row(st, end)
-        lengths.append(jnp.sqrt(row[3] ** 2 + row[4] ** 2))
-    elbow1 = arms[robot.bodies[ROD1[0] - 1].parent + 1].compose(_local(st, ROD1[0]))
-    return {"arm1": arms[robot.bodies[ROD1[0] - 1].parent + 1], "elbow1": elbow1, "pre": jnp.stack(pre),
-            "centres": jnp.stack(centres), "lengths": jnp.stack(lengths)}
+    """Everything that does not depend on the free joints: actuated arm frames, the elbow frame
+    of rod 1 at zero joint angle, and for rods 2-6 the elbow frames R_pre at zero angle, the
+    universal centres c_k and the rod lengths L_k."""
+    arms = _local(st, 1).compose(_local(st, np.array(ACTUATORS), q))  # (3,) frames
+    rod_arm = np.array([ACTUATORS.index(robot.bodies[r[0] - 1].parent + 1) for r in RODS])
+    parents = Pose(arms.R[rod_arm], arms.p[rod_arm])
+    f1 = parents.compose(_local(st, np.array([r[0] for r in RODS])))
+    f2 = f1.compose(_local(st, np.array([r[1] for r in RODS])))
+    ends = st["rows"][np.array([r[2] for r in RODS]) - 1]
+    i1 = ACTUATORS.index(robot.bodies[ROD1[0] - 1].parent + 1)
+    arm1 = Pose(arms.R[i1], arms.p[i1])
+    return {"arm1": arm1, "elbow1": arm1.compose(_local(st, ROD1[0])), "pre": f1.R, "centres": f2.p,
+            "lengths": jnp.hypot(ends[:, 3], ends[:, 4])}
+
+
+def _chain(st, f, bodies, x):
+    """Frames of a serial run of bodies from frame f with joint values x (one trig evaluation for
+    the whole run: fewer kernels, a faster compile)."""
+    locs = _local(st, np.array(bodies), jnp.stack(x))
+    out = []
+    for i in range(len(bodies)):
+        f = f.compose(Pose(locs.R[i], locs.p[i]))
+        out.append(f)
+    return out
 
 
 def _nacelle(robot, st, fixed, x):
-    """Nacelle frame (body 9) for the rod-1 joint values x = (q5, q6, q7, q8, q9)."""
-    f = fixed["arm1"]
-    for k, xk in zip(ROD1, x):
-        f = f.compose(_local(st, k, xk))
-    return f
+    """Frame of the last body of rod 1 reached by x: with x = (q5, q6, q7, q8, q9) the nacelle (body 9)."""
+    return _chain(st, fixed["arm1"], ROD1[: len(x)], x)[-1]
 
 
 def _closure_points(robot, st, nacelle):
-    return jnp.stack([nacelle.compose(_local(st, k)).p for k in CLOSURES])
+    return nacelle.apply(_local(st, np.array(CLOSURES)).p)
 
 
 def _sphere_residual(robot, st, fixed, x):
@@ -233,12 +241,10 @@ def _residual_and_jacobian(robot, st, fixed, x):
     """F(x) and its Jacobian dF/dx. Each rod-1 joint j turns about its axis z_j through o_j, so
     a nacelle point moves by z_j x (p - o_j) and dF_k/dq_j = n_k . (z_j x (p_k - o_j)) with n_k
     the unit rod direction (the geometric Jacobian; a test checks it against jax.jacfwd)."""
-    f, axes, origins = fixed["arm1"], [], []
-    for k, xk in zip(ROD1, x):
-        f = f.compose(_local(st, k, xk))
-        axes.append(f.R[:, 2])
-        origins.append(f.p)
-    pts = _closure_points(robot, st, f)
+    frames = _chain(st, fixed["arm1"], ROD1, x)
+    axes = [f.R[:, 2] for f in frames]
+    origins = [f.p for f in frames]
+    pts = _closure_points(robot, st, frames[-1])
     d = pts - fixed["centres"]
     dist = jnp.linalg.norm(d, axis=-1)
     n = d / dist[:, None]
@@ -267,13 +273,11 @@ def _tool_offset(robot):
 
 
 def _rod_angles(robot, st, fixed, nacelle):
-    """Universal angles of rods 2-6 pointing each rod end at its nacelle closure point."""
-    pts = _closure_points(robot, st, nacelle)
-    out = []
-    for k in range(len(RODS)):
-        u = pts[k] - fixed["centres"][k]
-        out.append(_universal_angles(fixed["pre"][k], u / jnp.linalg.norm(u)))
-    return out
+    """Universal angles (qa (5,), qb (5,)) of rods 2-6 pointing each rod end at its nacelle closure
+    point (as `_universal_angles`)."""
+    u = _closure_points(robot, st, nacelle) - fixed["centres"]
+    v = jnp.einsum("kji,kj->ki", fixed["pre"], u)  # R_pre^T u per rod
+    return jnp.arctan2(v[:, 1], v[:, 0]), jnp.arctan2(v[:, 2], jnp.hypot(v[:, 0], v[:, 1]))
 
 
 def closure_error(robot, st, q, nacelle, rods):
@@ -284,9 +288,9 @@ def closure_error(robot, st, q, nacelle, rods):
     arms = {k: base.compose(_local(st, k, q[i])) for i, k in enumerate(ACTUATORS)}
     pts = _closure_points(robot, st, nacelle)
     res = []
-    for k, ((e1, e2, end), (qa, qb)) in enumerate(zip(RODS, rods)):
+    for k, (e1, e2, end) in enumerate(RODS):
         f = arms[robot.bodies[e1 - 1].parent + 1]
-        f = f.compose(_local(st, e1, qa)).compose(_local(st, e2, qb)).compose(_local(st, end))
+        f = f.compose(_local(st, e1, rods[0][k])).compose(_local(st, e2, rods[1][k])).compose(_local(st, end))
         res.append(pts[k] - f.p)
     return jnp.linalg.norm(jnp.stack(res))
 
@@ -329,7 +333,7 @@ def solve_single(robot, a, q):
 def _closed_single(robot, a, q):
     """(tool Pose, theta_free in the Closure's order, closure residual norm, ok) for one q (3,)."""
     x, rods, tool, ok, err = solve_single(robot, a, q)
-    theta_free = jnp.concatenate([x, jnp.stack([v for pair in rods for v in pair])])
+    theta_free = jnp.concatenate([x, jnp.stack(rods, axis=-1).ravel()])  # (q15, q16, q18, q19, ...)
     return tool, theta_free, err, ok
 
 
