@@ -29,20 +29,6 @@ def _workspace(n, seed=0):
     return P, theta
 
 
-def _exact_nacelle(rb):
-    """Nominal a with the nacelle points 10-14 at full precision (Table 4.6 prints 4 digits):
-    each is the nacelle centre + rn radial(psi) +- 0.15 along its arm's elbow axis."""
-    a = np.array(rb.nominal_np)
-    R9 = dl.R_NACELLE
-    centre = np.array([0.15, -0.196, 0.0])
-    for body, psi, side in [(10, 0.0, -1), (11, -2 * np.pi / 3, 1), (12, -2 * np.pi / 3, -1),
-                            (13, 2 * np.pi / 3, 1), (14, 2 * np.pi / 3, -1)]:
-        v = 0.196 * np.array([np.cos(psi), np.sin(psi), 0]) + side * 0.15 * np.array([-np.sin(psi), np.cos(psi), 0])
-        local = R9.T @ v + centre
-        a[rb.index(f"j{body}.d1")], a[rb.index(f"j{body}.d2")] = local[0], local[1]
-    return jnp.asarray(a)
-
-
 def test_inverse_of_direct_is_identity():
     theta = jnp.asarray(np.random.default_rng(1).uniform(-0.1, 1.3, (500, 3)))
     P, ok = _direct(theta)
@@ -78,7 +64,7 @@ def test_closed_mcpc_delta_agrees_with_direct_solution(rb):
     pose = jc.forward(rb, rb.nominal, theta)
     assert bool(jnp.all(dl.closed(rb, rb.nominal, theta)))
     assert float(jnp.max(jnp.abs(pose.p - P))) < 5e-5
-    exact = jc.forward(rb, _exact_nacelle(rb), theta)
+    exact = jc.forward(rb, dl.full_precision_nominal(rb), theta)
     assert float(jnp.max(jnp.abs(exact.p - P))) < 1e-12
     # the nacelle stays parallel to the base (R = Rz(-pi/2) of the nacelle frame)
     assert float(jnp.max(jnp.abs(exact.R - dl.R_NACELLE))) < 1e-10

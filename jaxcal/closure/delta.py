@@ -390,6 +390,21 @@ class DeltaClosure(Closure):
         return solve(robot, a, q)
 
 
+def full_precision_nominal(robot, g: DeltaGeometry = NOMINAL):
+    """The nominal parameters with the nacelle points 10-14 at full precision (Table 4.6 prints
+    4 digits, ~4e-5 m off): each point is the nacelle centre + rn radial(psi) -+ half the
+    parallelogram spread along its arm's elbow axis, in the nacelle frame R_NACELLE."""
+    a = np.array(robot.nominal_np)
+    centre = np.array([0.15, -0.196, 0.0])  # tool point (row 30) in the nacelle frame
+    half = 0.15
+    for body, arm, side in [(10, 0, -1), (11, 1, 1), (12, 1, -1), (13, 2, 1), (14, 2, -1)]:
+        psi = g.psi[arm]
+        v = g.rn * np.array([np.cos(psi), np.sin(psi), 0]) + side * half * np.array([-np.sin(psi), np.cos(psi), 0])
+        local = R_NACELLE.T @ v + centre
+        a[robot.index(f"j{body}.d1")], a[robot.index(f"j{body}.d2")] = local[0], local[1]
+    return jnp.asarray(a)
+
+
 PAIRS = tuple((rod[2], c, "position") for c, rod in zip(CLOSURES, RODS))
 FREE = ROD1 + tuple(b for rod in RODS for b in rod[:2])
 
