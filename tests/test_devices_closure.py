@@ -84,3 +84,69 @@ def test_simulate_theodolite_and_range_through_delta_closure():
     assert float(jnp.max(jnp.abs(jnp.arctan2(v[:, 2], jnp.hypot(v[:, 0], v[:, 1])) - data.y[:, 1]))) < 1e-12
     rng = jc.simulate(rb, a, np.asarray(theta), "laser_range")
     assert float(jnp.max(jnp.abs(rng.y[:, 0] - jnp.linalg.norm(P, axis=-1)))) < 1e-12
+
+
+def _delta_study(device, noise=None, free=None, n_grid=5, seed=0, **options):
+    """Seed 004 §4.3 Delta simulations: the grid of §4.4.2 (n_grid^3 points, 400 mm cube),
+    true geometry = nominal with the rod of frame 26 made 20 mm longer, device pose known."""
+    rb = jc.robots.get("delta")
+    P = dl.grid(spacing=0.4 / (n_grid - 1), n=n_grid)
+    theta, ok = jax.jit(jax.vmap(dl.inverse))(jnp.asarray(P))
+    assert bool(jnp.all(ok))
+    a_true = rb.nominal.at[rb.index("j26.d1")].add(0.02)
+    data = jc.simulate(rb, a_true, np.asarray(theta), device, noise=noise, seed=seed)
+    fit = jc.identify(rb, data, known=("dev", "tool"), free=free, **options)
+    w = residual_weights(data.device, 1.0, 1.0)
+    q, y = jnp.asarray(data.q), jnp.asarray(data.y)
+
+    def norm(a):
+        return float(jnp.linalg.norm(residuals(rb, data.device, jnp.concatenate([a, data.device.nominal]), q, y, w)))
+
+    return rb, a_true, fit, norm(rb.nominal), norm(fit.a)
+
+
+RODS = ["j7.d1", "j17.d1", "j20.d1", "j23.d1", "j26.d1", "j29.d1"]
+
+
+def test_delta_finds_the_longer_arm_from_pose_data_small():
+    """Fast version of Delta simulation 1: 27 full-pose readings, the six rod lengths free.
+    The 20 mm error of rod 26 is found to 1e-9 m and the residual vanishes."""
+    rb, a_true, fit, before, after = _delta_study("pose", free=RODS, n_grid=3, base=False)
+    err = np.asarray(fit.a) - np.asarray(a_true)
+    assert abs(err[rb.index("j26.d1")]) < 1e-9 and np.max(np.abs(err)) < 1e-9
+    assert before > 0.1 and after < 1e-9
+
+
+@pytest.mark.slow
+def test_delta_simulation_1_full_pose():
+    """Delta simulation 1 (Table 4.7 col 4): 125 full-pose readings, the 74 free parameters of
+    Table 4.6 (base set). Thesis: residual norm 0.449 -> ~1e-6, rod 26 found. Here the norm of
+    the unweighted (m, rad) residual falls from ~0.82 to ~1e-14 and d1_26 is found to ~1e-13 m;
+    the thesis' residual layout (and so its 0.449) differs, see docs/delta.md."""
+    rb, a_true, fit, before, after = _delta_study("pose")
+    assert abs(float(fit.a[rb.index("j26.d1")] - a_true[rb.index("j26.d1")])) < 1e-9
+    assert before > 0.5 and after < 1e-9
+
+
+def _theodolite():
+    return jc.make_device("theodolite").with_values(**{"dev.x": -1.2197, "dev.y": -3.4359, "dev.z": -0.1611,
+                                                        "dev.rz": np.pi / 2 - 0.33})
+
+
+@pytest.mark.slow
+def test_delta_simulation_2_theodolite():
+    """Delta simulation 2: noise-free theodolite (azimuth, elevation) readings at the 125 grid
+    points from the thesis' instrument position (§4.4.3, eq 4.9), instrument pose known."""
+    rb, a_true, fit, before, after = _delta_study(_theodolite())
+    assert abs(float(fit.a[rb.index("j26.d1")] - a_true[rb.index("j26.d1")])) < 1e-6
+    assert after < 1e-3 * before
+
+
+@pytest.mark.slow
+def test_delta_simulation_3_theodolite_with_noise():
+    """Delta simulation 3: as 2 with angle noise variance 1.28e-9 rad^2 (eq 4.6) and actuator noise
+    variance 1.31e-9 rad^2 (eq 4.7). Thesis: 0.449 -> 0.089, d1_26 within 0.14 mm."""
+    noise = {"orientation": np.sqrt(1.28e-9), "actuator": np.sqrt(1.31e-9)}
+    rb, a_true, fit, before, after = _delta_study(_theodolite(), noise=noise, sigma_orientation=np.sqrt(1.28e-9))
+    assert abs(float(fit.a[rb.index("j26.d1")] - a_true[rb.index("j26.d1")])) < 1e-3
+    assert after < 0.1 * before
