@@ -1,6 +1,7 @@
 """Loop closure for closed mechanisms (seed 004 ch. 2): LM closure with implicit differentiation,
 planar absolute-angle bodies, mobility analysis. See docs/closure.md."""
 
+from jaxcal.closure.analysis import VERDICTS, Mobility, constraint_jacobian, mobility
 from jaxcal.closure.core import (
     CLOSED_TOL,
     FAIL_OFFSET,
@@ -15,6 +16,8 @@ from jaxcal.closure.core import (
     tree_frames,
 )
 from jaxcal.closure.planar import planar_frames, planar_robot
+from jaxcal.closure.table import closure_from_rows
 
-__all__ = ["CLOSED_TOL", "FAIL_OFFSET", "Closure", "ClosureSolution", "all_frames", "closed", "closure_residual",
-           "forward_closed", "open_tree", "planar_frames", "planar_robot", "solve", "tree_frames"]
+__all__ = ["CLOSED_TOL", "FAIL_OFFSET", "VERDICTS", "Closure", "ClosureSolution", "Mobility", "all_frames", "closed",
+           "closure_from_rows", "closure_residual", "constraint_jacobian", "forward_closed", "mobility", "open_tree",
+           "planar_frames", "planar_robot", "solve", "tree_frames"]

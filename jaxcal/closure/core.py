@@ -6,9 +6,11 @@ non-actuated joints are free, and the free-joint start that selects the assembly
 
 Closure (seed 004 eq 2.19-2.25): with g_p = [r_0p; eta_p] the position and Euler parameters of
 frame p, find theta_free minimising sum_i v_i^T Wc v_i with v_i = g_{p_i} - g_{q_i}; at a spherical
-closure only the position rows are kept. The minimiser is optimistix's Levenberg-Marquardt,
-differentiated by the implicit function theorem (`optx.ImplicitAdjoint`), so `jax.jacfwd` of
-`forward_closed` with respect to `a` is the closed-loop Jacobian of eq 2.65/2.69.
+closure only the position rows are kept. The minimiser is optimistix's Levenberg-Marquardt; its
+derivative is the implicit function theorem written as a `jax.custom_jvp` (Gauss-Newton form, exact
+at v = 0), so `jax.jacfwd` of `forward_closed` with respect to `a` is the closed-loop Jacobian of
+eq 2.65/2.69. (optimistix's own `ImplicitAdjoint` gives the same numbers but differentiates the
+Hessian of |v|^2: compiling jacfwd through it took ~36 s for the 3-D four-bar against ~4 s here.)
 
 Failure is data: the thesis' check (|v| > 1e-10 after convergence) flags a sample; `solve` returns
 the flag and `forward_closed` moves a flagged sample's position by `FAIL_OFFSET` metres (finite,
@@ -24,6 +26,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 
 from jaxcal.kin.model import Robot, _batched, frames_single, joint_variables
@@ -31,6 +34,7 @@ from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import quat_from_matrix
 
 CLOSURE_KINDS = ("full", "position")
+SOLVERS = ("lm", "newton")
 FAIL_OFFSET = 1.0e3  # metres added to each coordinate of a sample whose loops do not close
 CLOSED_TOL = 1e-10  # seed 004 §2.4.1: residual norm above this is a failure to close
 
@@ -44,6 +48,8 @@ class Closure:
     free: bodies whose joint variable is solved by closure, in the order of theta_free.
     start: default theta_free start (selects the assembly mode).
     w_position, w_orientation: diagonal of the weighting matrix Wc (eq 2.25).
+    solver: "lm" (optimistix Levenberg-Marquardt, the default) or "newton" (the Newton/LM hybrid
+        `newton_lm`: Gauss-Newton steps with LM damping only when a step fails; cheaper to compile).
     """
 
     pairs: tuple[tuple[int, int, str], ...]
@@ -53,8 +59,11 @@ class Closure:
     w_orientation: float = 1.0
     tol: float = CLOSED_TOL
     max_steps: int = 100
+    solver: str = "lm"
 
     def __post_init__(self):
+        if self.solver not in SOLVERS:
+            raise ValueError(f"closure solver must be one of {SOLVERS}, got {self.solver!r}")
         for k, (p, q, kind) in enumerate(self.pairs):
             if kind not in CLOSURE_KINDS:
                 raise ValueError(f"closure pair {k} ({p}, {q}): kind must be one of {CLOSURE_KINDS}, got {kind!r}")
@@ -104,13 +113,19 @@ def _check(robot: Robot) -> Closure:
 def open_tree(robot: Robot) -> Robot:
     """The tree with every free joint turned into an input after the actuated ones (closure removed).
 
-    Its joint vector is [joint_variables(q), theta_free]; gains/coupling are applied before.
+    Its joint vector is [joint_variables(q), theta_free, 0]; gains/coupling are applied before. MCPC
+    rotary/prismatic bodies that are neither actuated nor free (e.g. one joint of a closure pair)
+    read the trailing constant 0.
     """
     c = _check(robot)
     n_act = robot.n_inputs
     bodies = list(robot.bodies)
     for k, b in enumerate(c.free):
         bodies[b - 1] = dataclasses.replace(bodies[b - 1], inputs=(n_act + k,))
+    zero = n_act + c.n_free
+    for i, b in enumerate(bodies):
+        if b.convention == "mcpc" and b.kind in (0, 1) and not b.inputs:
+            bodies[i] = dataclasses.replace(b, inputs=(zero,))
     return robot.replace(bodies=tuple(bodies), closure=None, gains=None, coupling_joint=None, coupling_motor=None,
                          joint_names=robot.joint_names + tuple(f"j{b}" for b in c.free))
 
@@ -118,7 +133,7 @@ def open_tree(robot: Robot) -> Robot:
 def tree_frames(robot: Robot, a, qj, theta_free) -> Pose:
     """All body frames of the open tree for joint variables qj (actuated) and theta_free."""
     tree = open_tree(robot)
-    theta = jnp.concatenate([qj, theta_free])
+    theta = jnp.concatenate([qj, theta_free, jnp.zeros(1, dtype=theta_free.dtype)])
     if tree.bodies[0].convention == "planar":
         from jaxcal.closure.planar import planar_frames
 
@@ -149,19 +164,76 @@ def _lm():
     return optx.LevenbergMarquardt(rtol=1e-13, atol=1e-14)
 
 
+def newton_lm(fn, start, max_steps: int, tol: float):
+    """Newton/LM hybrid for a closure residual fn(theta) -> v: (theta, steps).
+
+    Each step solves (V^T V + mu I) d = -V^T v with V = dv/dtheta; a step that lowers |v| is kept
+    and mu shrinks tenfold (towards plain Gauss-Newton, quadratic near a closed configuration),
+    otherwise mu grows tenfold. Stops at |v| <= tol / 100, after max_steps, or when mu exceeds 1e12.
+    """
+    eye = jnp.eye(start.shape[0], dtype=start.dtype)
+
+    def cond(state):
+        _, norm, mu, k = state
+        return (norm > 0.01 * tol) & (k < max_steps) & (mu < 1e12)
+
+    def body(state):
+        th, norm, mu, k = state
+        v = fn(th)
+        V = jax.jacfwd(fn)(th)
+        step = -jnp.linalg.solve(V.T @ V + mu * eye, V.T @ v)
+        trial = th + step
+        trial_norm = jnp.linalg.norm(fn(trial))
+        better = jnp.isfinite(trial_norm) & (trial_norm < norm)
+        return (jnp.where(better, trial, th), jnp.where(better, trial_norm, norm),
+                jnp.where(better, jnp.maximum(mu * 0.1, 1e-15), mu * 10.0), k + 1)
+
+    th, _, _, k = jax.lax.while_loop(cond, body, (start, jnp.linalg.norm(fn(start)), jnp.asarray(1e-6), 0))
+    return th, k
+
+
+def _lm_solve(robot: Robot, a, qj, start):
+    """(theta_free, steps): LM on |v|^2 from start (never raises, so a batch survives a bad sample)."""
+    c = robot.closure
+    if c.solver == "newton":
+        th, k = newton_lm(lambda th: closure_residual(robot, a, qj, th), start, c.max_steps, c.tol)
+        return jnp.where(jnp.all(jnp.isfinite(th)), th, start), k
+    sol = optx.least_squares(lambda th, args: closure_residual(robot, args[0], args[1], th), _lm(), start,
+                             args=(a, qj), max_steps=robot.closure.max_steps, throw=False,
+                             adjoint=optx.RecursiveCheckpointAdjoint())
+    finite = jnp.all(jnp.isfinite(sol.value))
+    return jnp.where(finite, sol.value, start), sol.stats["num_steps"]
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _closed_theta(robot: Robot, a, qj, start):
+    """theta_free closing the loops; its derivative is the implicit function theorem (eq 2.65-2.69)."""
+    return _lm_solve(robot, a, qj, start)
+
+
+@_closed_theta.defjvp
+def _closed_theta_jvp(robot, primals, tangents):
+    """d theta = -(V^T V)^-1 V^T (dv/da da + dv/dq dq), V = dv/dtheta at the closed configuration.
+
+    At v = 0 this is the exact implicit derivative of the least-squares solution (the second-order
+    term of the Hessian multiplies v); the start has no influence on a converged solution.
+    """
+    a, qj, start = primals
+    da, dqj, _ = tangents
+    theta, steps = _lm_solve(robot, a, qj, start)
+    V = jax.jacfwd(lambda th: closure_residual(robot, a, qj, th))(theta)
+    _, dv = jax.jvp(lambda a_, q_: closure_residual(robot, a_, q_, theta), (a, qj), (da, dqj))
+    dtheta = -jnp.linalg.solve(V.T @ V, V.T @ dv)
+    return (theta, steps), (dtheta, np.zeros(np.shape(steps), dtype=jax.dtypes.float0))
+
+
 def _solve_single(robot: Robot, a, qj, start) -> ClosureSolution:
     c = robot.closure
-
-    def fn(theta, args):
-        return closure_residual(robot, args[0], args[1], theta)
-
-    sol = optx.least_squares(fn, _lm(), start, args=(a, qj), max_steps=c.max_steps, throw=False,
-                             adjoint=optx.ImplicitAdjoint())
-    finite = jnp.all(jnp.isfinite(sol.value))
-    theta = jnp.where(finite, sol.value, start)
-    norm = jnp.linalg.norm(fn(jax.lax.stop_gradient(theta), (jax.lax.stop_gradient(a), qj)))
-    ok = finite & (norm <= c.tol)
-    return ClosureSolution(theta, jnp.where(finite, norm, jnp.inf), ok, sol.stats["num_steps"])
+    theta, steps = _closed_theta(robot, a, qj, start)
+    norm = jnp.linalg.norm(closure_residual(robot, jax.lax.stop_gradient(a), jax.lax.stop_gradient(qj),
+                                            jax.lax.stop_gradient(theta)))
+    ok = jnp.isfinite(norm) & (norm <= c.tol)
+    return ClosureSolution(theta, jnp.where(jnp.isfinite(norm), norm, jnp.inf), ok, steps)
 
 
 def _start(robot: Robot, start):

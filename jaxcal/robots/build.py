@@ -146,13 +146,14 @@ MCPC_USED = {
 
 
 def mcpc_robot(name, rows, actuated=None, home=None, q_min=None, q_max=None, joint_names=None,
-               tip=None, closure=None) -> Robot:
+               tip=None, closure=None, closure_start=None) -> Robot:
     """Robot from seed 004 Table 4.1 rows (a1 a2 a3 d1 d2 d3 predecessor closure type).
 
     Bodies are numbered 1..N as in the table; predecessor 0 is the base. Rotary (0) and
     prismatic (1) bodies take a joint input unless `actuated` lists which bodies are driven
     (the others are then free joints solved by closure). Entries a row leaves unused (eq 2.45)
-    must be zero.
+    must be zero. With `actuated` given and a non-zero closure column, `closure` defaults to
+    `jaxcal.closure.closure_from_rows(rows, actuated, closure_start)`.
     """
     t = _Table()
     bodies, n_in, jn = [], 0, []
@@ -185,6 +186,10 @@ def mcpc_robot(name, rows, actuated=None, home=None, q_min=None, q_max=None, joi
     joint_names = tuple(joint_names) if joint_names is not None else tuple(jn)
     lo, hi = _limits(n_in, q_min, q_max, -np.pi, np.pi)
     home = np.zeros(n_in) if home is None else np.asarray(home, float)
+    if closure is None and actuated is not None and any(int(row[7]) for row in rows):
+        from jaxcal.closure.table import closure_from_rows
+
+        closure = closure_from_rows(rows, actuated, closure_start)
     return Robot(
         name=name, bodies=tuple(bodies), names=tuple(t.names), nominal_np=np.array(t.values),
         units=tuple(t.units), free_mask=np.array(t.free), priority=np.array(t.priority),

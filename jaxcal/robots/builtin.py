@@ -76,6 +76,18 @@ def fourbar2d():
                         home=[np.pi / 2 + 0.4], q_min=[np.pi / 2 - 0.6], q_max=[np.pi / 2 + 1.2])
 
 
+@register("fourbar3d")
+@functools.cache
+def fourbar3d():
+    """The 3-D four-bar of seed 004 Table 4.2a (Figure 4.11) as an MCPC tree with a ball-joint closure.
+
+    Joint 1 actuated, joints 3-5 free (start 0, the closed configuration at theta1 = 0), closure
+    (position) between frames 2 and 6, tool = frame 5. theta1 = +-pi/2 are the singular
+    configurations (links stretched / joints 2 and 4 coincident), so q is kept within +-1.2 rad.
+    """
+    return load_robot(_data_file("fourbar3d.yaml"))
+
+
 # --- Delta and Kiwibot (seed 004 Tables 4.6 and 4.4) ---------------------------------------------
 
 def _free_list(name: str):

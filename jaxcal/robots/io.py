@@ -14,7 +14,8 @@ MCPC (seed 004 Table 4.1):
     rows:
       - [0, 0, 0, 0, 0, 0, 0, 0, 3]
 
-Optional keys: name, home, q_min, q_max, joint_names, actuated (mcpc), tip (mcpc). Errors name
+Optional keys: name, home, q_min, q_max, joint_names, actuated (mcpc), tip (mcpc), closure_start (mcpc:
+the free-joint start of the closure, see docs/closure.md). Errors name
 the file, the row and the field.
 """
 
@@ -114,7 +115,7 @@ def robot_from_dict(doc: dict, path: str = "<dict>"):
             vals = [_number(v, path, i, f) for v, f in zip(row, _COLUMNS[conv])]
             table.append([vals[0] * ang, vals[1] * ang, vals[2] * ang, vals[3] * lng, vals[4] * lng, vals[5] * lng,
                           int(vals[6]), int(vals[7]), int(vals[8])])
-        extra = {k: doc[k] for k in ("actuated", "tip") if k in doc}
+        extra = {k: doc[k] for k in ("actuated", "tip", "closure_start") if k in doc}
         return mcpc_robot(name, table, **common, **extra)
     except RobotFileError:
         raise
@@ -161,7 +162,10 @@ def robot_to_dict(robot, a=None) -> dict:
             k = float(a[gains[b]]) if b in gains else 0.0
             rows.append([int(b.kind), al, d, th, r, be, k])
     else:
-        closures = (robot.closure or {}).get("pairs", {}) if isinstance(robot.closure, dict) else {}
+        pairs = getattr(robot.closure, "pairs", ())
+        closures = {q: p for p, q, _ in pairs}  # closure column on the row that names its partner
+        if pairs:
+            doc["closure_start"] = [float(s) for s in robot.closure.start]
         for i, b in enumerate(robot.bodies, start=1):
             rows.append([float(ext[k]) for k in b.rows] + [b.parent + 1, int(closures.get(i, 0)), int(b.kind)])
         doc["actuated"] = [i for i, b in enumerate(robot.bodies, start=1) if b.inputs]
