@@ -107,3 +107,12 @@ def delta():
     from jaxcal.closure.delta import with_delta_closure
 
     return with_delta_closure(load_robot(_data_file("delta.yaml")), free=_free_list("delta.yaml"))
+
+
+@register("kiwibot")
+@functools.cache
+def kiwibot():
+    """The Kiwibot of seed 004 Table 4.4: 16 MCPC bodies, actuators 2-4, two spherical closures
+    (15-13, 16-14) solved by the generic LM closure from the closed home setting, tool = nacelle
+    frame 10; 39 free parameters as marked in the table."""
+    return load_robot(_data_file("kiwibot.yaml")).with_free(_free_list("kiwibot.yaml"))
