@@ -158,24 +158,6 @@ def test_delta_simulation_3_theodolite_with_noise():
     assert after < 1.5 * floor and before > 20 * floor
 
 
-def _kiwibot_study(device, noise=None, n=160, seed=0):
-    """Seed 004 §4.3 Kiwibot simulations: n random settings in the actuator range, every free
-    parameter of Table 4.4 perturbed by N(0, 3e-4) (the size of Table 4.5's perturbations)."""
-    rb = jc.robots.get("kiwibot")
-    a_true = jc.perturb(rb, 3e-4, seed=seed)
-    q = jc.random_configurations(rb, n, seed=seed + 1)
-    data = jc.simulate(rb, a_true, q, device, noise=noise, seed=seed + 2)
-    assert bool(jnp.all(jc.closure.closed(rb, a_true, q)))
-    fit = jc.identify(rb, data, known=("dev", "tool"))
-    w = residual_weights(data.device, 1.0, 1.0)
-    qj, y = jnp.asarray(data.q), jnp.asarray(data.y)
-
-    def norm(a):
-        return float(jnp.linalg.norm(residuals(rb, data.device, jnp.concatenate([a, data.device.nominal]), qj, y, w)))
-
-    return rb, a_true, fit, norm(rb.nominal), norm(fit.a)
-
-
 def test_kiwibot_closes_about_a_fixed_centre():
     """The Kiwibot is a spherical positioner: the nacelle frame 10 turns about the base centre."""
     rb = jc.robots.get("kiwibot")
@@ -185,17 +167,3 @@ def test_kiwibot_closes_about_a_fixed_centre():
     assert float(jnp.max(jnp.abs(pose.p))) < 1e-12
     angles = jnp.linalg.norm(jax.vmap(jc.kin.rotations.log_so3)(pose.R), axis=-1)
     assert float(jnp.min(angles)) > 0.05  # it does turn
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("case", ["pose", "orientation", "orientation_noise"])
-def test_kiwibot_simulations(case):
-    """Kiwibot simulations 1-3 (Table 4.5): full pose; orientation only (inclinometer);
-    orientation with measurement noise variance 1.28e-9 and actuator noise variance 1.31e-9.
-    Thesis residual norms: 1.54e-2 -> 7.54e-10, 1.23e-2 -> 1.19e-8, 0.0124 -> 8.66e-4."""
-    noise = {"orientation": np.sqrt(1.28e-9), "actuator": np.sqrt(1.31e-9)} if case == "orientation_noise" else None
-    rb, a_true, fit, before, after = _kiwibot_study("pose" if case == "pose" else "orientation", noise=noise)
-    if noise is None:
-        assert after < 1e-8 * before
-    else:
-        assert after < 3.0 * np.sqrt(480) * np.sqrt(1.28e-9 + 1.31e-9)
