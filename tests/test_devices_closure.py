@@ -158,6 +158,7 @@ def test_delta_simulation_3_theodolite_with_noise():
     assert after < 1.5 * floor and before > 20 * floor
 
 
+@pytest.mark.slow  # compiles the generic LM closure: ~60 s cold on this machine
 def test_kiwibot_closes_about_a_fixed_centre():
     """The Kiwibot is a spherical positioner: the nacelle frame 10 turns about the base centre."""
     rb = jc.robots.get("kiwibot")
