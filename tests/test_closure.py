@@ -1,5 +1,7 @@
 """Loop closure and the closed-loop Jacobian of the thesis' 2-D four-bar (seed 004 §2.4-2.5, eq 2.71-2.101)."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -49,9 +51,11 @@ def test_eq_2_87(fb):
 
     23 of the 24 entries round to the printed value. The exception is d y5 / d phi1, computed
     -0.328269 and printed -0.3282: phi1 enters only as theta1 + phi1, so this entry is d y5 / d theta1,
-    which the finite-difference and chain-rule checks below confirm; the thesis' own eq 2.100 gives
-    d theta4 / d phi1 = 0.8558 and d y5 / d phi1 = a4 cos(theta4) d theta4/d phi1 = -0.3283 from it.
-    So that entry is held to within one unit of the printed last digit (1e-4), the others to rounding.
+    which the finite-difference and chain-rule checks below confirm. It equals a4 cos(psi4) times
+    d theta4 / d phi1 (psi4 = 1.926972): the printed -0.3282 needs d theta4 / d phi1 <= 0.85576, at the
+    rounding edge of the thesis' own eq 2.100 entry 0.8558; we compute 0.855841 (which gives
+    -0.328269 and the printed row-1 entry -0.8823 alike). So that entry is held to within one unit of
+    the printed last digit (1e-4), the other 23 to rounding (0.5e-4).
     """
     J = closed_jacobian(fb, fb.nominal, THETA1)
     err = np.abs(J - EQ_2_87)
@@ -125,8 +129,9 @@ def test_vmap_batch_and_flags(fb):
     r2 = 0.95 * np.array([np.cos(1.2), np.sin(1.2)])
     p5 = np.asarray(p[1, :2])
     assert abs(np.linalg.norm(p5 - [0.9, 0.0]) - 1.1) < 1e-10 and abs(np.linalg.norm(r2 - p5) - 0.9) < 1e-10
-    J = jax.jacfwd(lambda a: jc.forward(fb, a, q).p)(fb.nominal)
+    J, JR = jax.jacfwd(lambda a: tuple(jc.forward(fb, a, q)))(fb.nominal)[::-1]
     assert np.all(np.isfinite(np.asarray(J))) and float(jnp.abs(J[2]).max()) == 0.0
+    assert np.all(np.isfinite(np.asarray(JR))) and float(jnp.abs(JR[2]).max()) == 0.0
 
 
 def test_bad_descriptions():
@@ -142,3 +147,61 @@ def test_bad_descriptions():
     rb = planar_robot("bad", [1.0] * 6, [0.0] * 6, [0, 1, 0, 3, 4, 5], (1,), c, tip=5)
     with pytest.raises(ValueError, match="body 1 is actuated"):
         jc.forward(rb, rb.nominal, jnp.array([1.0]))
+
+
+def test_full_closure_mcpc_planar_fourbar(fb):
+    """The same four-bar as an MCPC tree closed at a rotary joint ("full": position + Euler parameters).
+
+    Bodies: 1 crank joint (actuated) at the origin, 2 crank end (free), 3 second ground pivot
+    (free), 4 coupler joint (free, the tool), 5 end of the last link, closing with 2 (closure column).
+    Frame 4 must sit where the thesis' frame 5 does, and jacfwd must match central FD. Only in-plane
+    parameters are perturbed: tilting an axis (a1, a2) leaves a planar 4R with a full closure
+    unable to close (it is over-constrained in space), which the flag reports.
+    """
+    rows = [
+        [0, 0, 0, 0, 0, 0, 0, 0, 0],
+        [0, 0, 0, 0.95, 0, 0, 1, 0, 0],
+        [0, 0, 0, 0.9, 0, 0, 0, 0, 0],
+        [0, 0, 0, 1.1, 0, 0, 3, 0, 0],
+        [0, 0, 0, 0.9, 0, 0, 4, 2, 0],
+    ]
+    rb = jc.robots.mcpc_robot("fourbar_mcpc", rows, actuated=[1], tip=4, closure_start=[1.35, 1.93, 1.39])
+    assert rb.closure.pairs == ((2, 5, "full"),) and rb.closure.free == (2, 3, 4)
+    q = jnp.array([[THETA1], [1.2], [2.6]])
+    sol = solve(rb, rb.nominal, q)
+    assert bool(jnp.all(sol.ok))
+    np.testing.assert_allclose(np.asarray(jc.forward(rb, rb.nominal, q).p), np.asarray(jc.forward(fb, fb.nominal, q).p), atol=1e-10)
+    in_plane = np.array([n.split(".")[1] in ("a3", "d1", "d2") for n in rb.names])
+    a0 = rb.nominal + 0.01 * in_plane * np.cos(np.arange(rb.n_params))
+    assert bool(jnp.all(solve(rb, a0, q).ok))
+    tilted = rb.nominal.at[rb.names.index("j4.a1")].add(0.01)
+    assert not bool(jnp.any(solve(rb, tilted, q).ok))
+    J = jax.jacfwd(lambda a: jc.forward(rb, a, q).p.reshape(-1))(a0)
+    J_fd = central_fd(lambda a: jc.forward(rb, jnp.asarray(a), q).p, a0)
+    assert rel_err(J, J_fd) < 1e-7
+
+
+def _circle_start(a, qj):
+    """Direct solution of the planar four-bar (two-circle intersection) in the thesis' assembly mode."""
+    e = lambda t: jnp.stack([jnp.cos(t), jnp.sin(t)])  # noqa: E731
+    p2, p4 = a[0] * e(qj[0] + a[6]), a[2] * e(a[8])
+    d = p2 - p4
+    dist = jnp.linalg.norm(d)
+    along = (a[3] ** 2 - a[4] ** 2 + dist**2) / (2 * dist)
+    h = jnp.sqrt(jnp.maximum(a[3] ** 2 - along**2, 0.0))
+    p5 = p4 + along * d / dist + h * jnp.stack([d[1], -d[0]]) / dist
+    angle = lambda v: jnp.arctan2(v[1], v[0])  # noqa: E731
+    return jnp.stack([angle(p5 - p4) - a[9], angle(p2 - p5) - a[10]])
+
+
+def test_start_fn_per_sample(fb):
+    """A per-sample start from a direct solution: same closed configuration, closure in at most 2 steps.
+    (The derivative does not depend on the start: the implicit rule is evaluated at the solution.)"""
+    rb = fb.replace(closure=dataclasses.replace(fb.closure, start_fn=_circle_start))
+    a = fb.nominal + 0.01 * np.sin(np.arange(12.0))
+    q = jnp.linspace(1.0, 2.7, 9)[:, None]
+    s_fn, s_fix = solve(rb, a, q), solve(fb, a, q)
+    assert bool(jnp.all(s_fn.ok)) and int(jnp.max(s_fn.steps)) <= 2 < int(jnp.max(s_fix.steps))
+    th_fn, th_fix = np.asarray(s_fn.theta_free), np.asarray(s_fix.theta_free)
+    np.testing.assert_allclose(np.cos(th_fn), np.cos(th_fix), atol=1e-10)  # same angles modulo 2 pi
+    np.testing.assert_allclose(np.sin(th_fn), np.sin(th_fix), atol=1e-10)

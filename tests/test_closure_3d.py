@@ -134,3 +134,18 @@ def test_identify_through_closure(fb3):
     assert fit.estimated == probe.estimated
     assert fit.rms_before > 1.0 and fit.rms_after < 1e-7  # mm
     np.testing.assert_allclose(np.asarray(fit.a), a_true, atol=1e-9)
+
+
+def test_yaml_round_trip_and_bad_closure_column(fb3, tmp_path):
+    path = tmp_path / "fb3.yaml"
+    jc.save_robot(fb3, str(path))
+    back = jc.load_robot(str(path))
+    assert back.closure == fb3.closure and back.names == fb3.names
+    np.testing.assert_array_equal(back.nominal_np, fb3.nominal_np)
+    text = path.read_text().replace("[-1.5707963267948966, 0.0, 0.0, -1.0, 0.0, 0.0, 5, 2, 2]",
+                                    "[-1.5707963267948966, 0.0, 0.0, -1.0, 0.0, 0.0, 5, 9, 2]")
+    assert "5, 9, 2" in text
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    with pytest.raises(jc.robots.RobotFileError, match=r"bad.yaml.*row 6: field 'closure' = 9 must name another row"):
+        jc.load_robot(str(bad))

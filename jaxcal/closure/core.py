@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -48,6 +48,8 @@ class Closure:
     free: bodies whose joint variable is solved by closure, in the order of theta_free.
     start: default theta_free start (selects the assembly mode).
     w_position, w_orientation: diagonal of the weighting matrix Wc (eq 2.25).
+    start_fn: optional start_fn(a, qj) -> theta_free start per sample (e.g. a nominal direct
+        solution, seed §2.4); used instead of `start` when given (no derivative flows through it).
     solver: "lm" (optimistix Levenberg-Marquardt, the default) or "newton" (the Newton/LM hybrid
         `newton_lm`: Gauss-Newton steps with LM damping only when a step fails; cheaper to compile).
     """
@@ -60,6 +62,7 @@ class Closure:
     tol: float = CLOSED_TOL
     max_steps: int = 100
     solver: str = "lm"
+    start_fn: Callable | None = None
 
     def __post_init__(self):
         if self.solver not in SOLVERS:
@@ -224,11 +227,14 @@ def _closed_theta_jvp(robot, primals, tangents):
     V = jax.jacfwd(lambda th: closure_residual(robot, a, qj, th))(theta)
     _, dv = jax.jvp(lambda a_, q_: closure_residual(robot, a_, q_, theta), (a, qj), (da, dqj))
     dtheta = -jnp.linalg.solve(V.T @ V, V.T @ dv)
+    dtheta = jnp.where(jnp.all(jnp.isfinite(dtheta)), dtheta, 0.0)  # singular V: no closure, flagged anyway
     return (theta, steps), (dtheta, np.zeros(np.shape(steps), dtype=jax.dtypes.float0))
 
 
 def _solve_single(robot: Robot, a, qj, start) -> ClosureSolution:
     c = robot.closure
+    if start is None:  # per-sample start from the robot's start_fn
+        start = jnp.asarray(jax.lax.stop_gradient(c.start_fn(a, qj)), dtype=jnp.float64)
     theta, steps = _closed_theta(robot, a, qj, start)
     norm = jnp.linalg.norm(closure_residual(robot, jax.lax.stop_gradient(a), jax.lax.stop_gradient(qj),
                                             jax.lax.stop_gradient(theta)))
@@ -237,6 +243,9 @@ def _solve_single(robot: Robot, a, qj, start) -> ClosureSolution:
 
 
 def _start(robot: Robot, start):
+    """The explicit start, else None when the closure has a start_fn, else the closure's start."""
+    if start is None and robot.closure.start_fn is not None:
+        return None
     s = robot.closure.start if start is None else start
     return jnp.asarray(s, dtype=jnp.float64)
 
@@ -252,7 +261,8 @@ def _solve_batched(robot: Robot, a, q, start) -> ClosureSolution:
 def solve(robot: Robot, a, q, start=None) -> ClosureSolution:
     """Close the loops for actuator settings q (..., n_inputs): free joints, |v|, ok flag per sample.
 
-    start: theta_free start (default `robot.closure.start`, the robot's assembly mode).
+    start: theta_free start (default `robot.closure.start_fn(a, qj)` per sample when set, else
+    `robot.closure.start`, the robot's assembly mode).
     """
     _check(robot)
     a = jnp.asarray(a, dtype=jnp.float64)
@@ -266,6 +276,7 @@ def _forward_single(robot: Robot, a, qi, start) -> Pose:
     f = tree_frames(robot, a, qj, sol.theta_free)
     R, p = f.R[robot.tip], f.p[robot.tip]
     p = jnp.where(sol.ok, p, jax.lax.stop_gradient(p) + FAIL_OFFSET)
+    R = jnp.where(sol.ok, R, jax.lax.stop_gradient(R))  # no derivative from a sample that did not close
     return Pose(R, p)
 
 
