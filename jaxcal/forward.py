@@ -9,6 +9,9 @@ from jaxcal.kin.pose import Pose
 def forward(robot: Robot, a, q) -> Pose:
     """Tool pose for joint inputs q (..., n_inputs) and parameters a (n_params,)."""
     if robot.closure is not None:
+        fast = getattr(robot.closure, "forward", None)  # a mechanism-specific closure (e.g. the Delta)
+        if fast is not None:
+            return fast(robot, a, q)
         from jaxcal.closure import forward_closed
 
         return forward_closed(robot, a, q)

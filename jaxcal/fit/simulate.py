@@ -64,6 +64,10 @@ def simulate(robot, a_true, q, device="position", noise=None, device_params=None
         y[:, :3, 3] += s_p * rng.standard_normal((len(y), 3))
         dR = np.asarray(jax.vmap(exp_so3)(jnp.asarray(s_r * rng.standard_normal((len(y), 3)))))
         y[:, :3, :3] = dR @ y[:, :3, :3]
+    elif dev.kind == "theodolite":  # angle noise (rad) on azimuth and elevation
+        y = y + s_r * rng.standard_normal(y.shape)
+    elif dev.kind == "laser_range":
+        y = y + s_p * rng.standard_normal(y.shape)
     elif dev.kind == "orientation":
         dR = np.asarray(jax.vmap(exp_so3)(jnp.asarray(s_r * rng.standard_normal((len(y), 3)))))
         y = dR @ y

@@ -11,6 +11,15 @@ A reading is expressed in the device frame: y = D^-1 T_tip M.
 | "pose"        | marker frame, (4, 4)            | dev (6), tool frame (6)     |
 | "orientation" | marker rotation, (3, 3)         | dev rotation (3), tool (3)  |
 | "three_point" | three sphere centres, (3, 3)    | dev (6); spheres known      |
+| "theodolite"  | (azimuth, elevation) rad, (2,)  | dev (6), tool point (3)     |
+| "laser_range" | distance to the marker m, (1,)  | dev x y z (3), tool (3)     |
+
+Theodolite (seed 004 §4.2.3, §4.4.2): the sight line to the marker, v = D^-1 T_tip m, read as
+the azimuth atan2(v_y, v_x) in the instrument's horizontal plane and the elevation
+atan2(v_z, |v_xy|) above it (the thesis' zenith angle is pi/2 - elevation). Two angles give no
+absolute scale, so some length must be known (the reference tree of §4.4.3: `locate_theodolite`).
+Laser range: |D^-1 T_tip m|, the distance from the instrument centre; its orientation is not
+observable and not a parameter. "inclinometer" is the "orientation" device.
 
 "tracker" (a laser tracker with unknown base frame) is the "position" device.
 """
@@ -19,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -96,6 +106,10 @@ class Device:
             D = frame_from_params(d[0:6])
             pts = jnp.asarray(self.targets)
             return D.inverse().apply(tip.apply(pts))
+        if self.kind == "theodolite":
+            return sight_angles(frame_from_params(d[0:6]).inverse().apply(tip.apply(d[6:9])))
+        if self.kind == "laser_range":
+            return jnp.linalg.norm(tip.apply(d[3:6]) - d[0:3], keepdims=True)
         raise ValueError(f"unknown device kind {self.kind!r}")
 
     def residual(self, pred, meas):
@@ -111,6 +125,11 @@ class Device:
             return jnp.concatenate([dp, log_so3(meas[:3, :3] @ pred[:3, :3].T)])
         if self.kind == "orientation":
             return log_so3(meas @ pred.T)
+        if self.kind == "theodolite":
+            d = meas - pred
+            return jnp.arctan2(jnp.sin(d), jnp.cos(d))  # azimuth wraps at +-pi
+        if self.kind == "laser_range":
+            return meas - pred
         raise ValueError(f"unknown device kind {self.kind!r}")
 
     def split_errors(self, res):
@@ -122,7 +141,14 @@ class Device:
             return jnp.sqrt(jnp.mean(jnp.sum(r**2, -1), -1)), None
         if self.kind == "pose":
             return jnp.linalg.norm(res[:, :3], axis=-1), jnp.linalg.norm(res[:, 3:], axis=-1)
+        if self.kind == "laser_range":
+            return jnp.abs(res[:, 0]), None
         return None, jnp.linalg.norm(res, axis=-1)
+
+
+def sight_angles(v):
+    """(azimuth, elevation) of a sight vector v (3,) in the instrument frame."""
+    return jnp.stack([jnp.arctan2(v[1], v[0]), jnp.arctan2(v[2], jnp.hypot(v[0], v[1]))])
 
 
 def _frame_names(prefix, parts=_FRAME):
@@ -131,7 +157,8 @@ def _frame_names(prefix, parts=_FRAME):
 
 def make_device(kind: str, targets=None) -> Device:
     """A device of the given kind with nominal (identity) frames, all parameters unknown."""
-    kind = {"tracker": "position", "laser_tracker": "position", "location": "pose", "full_pose": "pose"}.get(kind, kind)
+    kind = {"tracker": "position", "laser_tracker": "position", "location": "pose", "full_pose": "pose",
+            "inclinometer": "orientation", "laser": "laser_range"}.get(kind, kind)
     if kind == "position":
         names = _frame_names("dev") + _frame_names("tool", ("x", "y", "z"))
         shape = (3,)
@@ -147,8 +174,15 @@ def make_device(kind: str, targets=None) -> Device:
         targets = np.array([[0.05, 0.0, 0.0], [0.0, 0.05, 0.0], [0.0, 0.0, 0.05]]) if targets is None else np.asarray(targets, float)
         if targets.shape != (3, 3):
             raise ValueError(f"three_point targets must be 3 sphere centres (3, 3), got shape {targets.shape}")
+    elif kind == "theodolite":
+        names = _frame_names("dev") + _frame_names("tool", ("x", "y", "z"))
+        shape = (2,)
+    elif kind == "laser_range":
+        names = _frame_names("dev", ("x", "y", "z")) + _frame_names("tool", ("x", "y", "z"))
+        shape = (1,)
     else:
-        raise ValueError(f"unknown device {kind!r}; expected position, tracker, pose, orientation or three_point")
+        raise ValueError(f"unknown device {kind!r}; expected position, tracker, pose, orientation (inclinometer), "
+                         "three_point, theodolite or laser_range")
     units = tuple("angle" if n.split(".")[1].startswith("r") else "length" for n in names)
     return Device(kind, names, np.zeros(len(names)), units, np.ones(len(names), bool), shape, targets)
 
@@ -171,4 +205,31 @@ def three_point_orientation(P_initial, P_final):
     return U @ S @ Vt
 
 
-__all__ = ["Device", "make_device", "three_point_orientation", "frame_from_params", "skew"]
+def locate_theodolite(points, readings, start=None, max_steps=100):
+    """Theodolite frame parameters (x, y, z, rx, ry, rz) in the robot base frame from sightings of
+    known reference points (the tree of seed 004 §4.4.3: three or more points, known by
+    measurement, read as (azimuth, elevation)). Least squares by optimistix LM from `start`
+    (default: the instrument 3 m away along -y looking at the points). Returns (params, rms rad)."""
+    import optimistix as optx
+
+    points = jnp.asarray(points, dtype=jnp.float64)
+    readings = jnp.asarray(readings, dtype=jnp.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] < 3:
+        raise ValueError(f"locate_theodolite: need >= 3 known points (K, 3), got shape {points.shape}")
+    if readings.shape != (points.shape[0], 2):
+        raise ValueError(f"locate_theodolite: readings must be (K={points.shape[0]}, 2) azimuth/elevation, got {readings.shape}")
+
+    def residual(d, _):
+        pred = jax.vmap(lambda p: sight_angles(frame_from_params(d).inverse().apply(p)))(points)
+        diff = readings - pred
+        return jnp.arctan2(jnp.sin(diff), jnp.cos(diff)).ravel()
+
+    if start is None:
+        c = jnp.mean(points, axis=0)
+        start = jnp.concatenate([c - jnp.array([0.0, 3.0, 0.0]), jnp.array([0.0, 0.0, jnp.pi / 2])])
+    sol = optx.least_squares(residual, optx.LevenbergMarquardt(rtol=1e-12, atol=1e-14), jnp.asarray(start, jnp.float64),
+                             max_steps=max_steps, throw=False)
+    return sol.value, float(jnp.sqrt(jnp.mean(residual(sol.value, None) ** 2)))
+
+
+__all__ = ["Device", "make_device", "three_point_orientation", "frame_from_params", "locate_theodolite", "sight_angles", "skew"]

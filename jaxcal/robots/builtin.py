@@ -119,3 +119,33 @@ def tiago_arm():
     """PAL TIAGo torso lift + arm from its URDF (base_footprint -> wrist_ft_tool_link; 8 joints, 62
     parameters); data: `jaxcal.realdata.load("tiago")`. URDF by FIGAROH's authors, Apache-2.0."""
     return _real_robot("tiago")
+
+
+# --- Delta and Kiwibot (seed 004 Tables 4.6 and 4.4) ---------------------------------------------
+
+def _free_list(name: str):
+    import yaml
+
+    with open(_data_file(name)) as fh:
+        return yaml.safe_load(fh)["free"]
+
+
+@register("delta")
+@functools.cache
+def delta():
+    """The Canterbury Delta of seed 004 Table 4.6: 30 MCPC bodies, actuators 2-4 (theta1..3, rad,
+    below the horizontal), five spherical closures, tool at the nacelle centre (body 30); 74 free
+    parameters as marked in the table. Closure: nominal direct solution (§2.6) then Newton on the
+    reduced square system (`jaxcal.closure.delta`)."""
+    from jaxcal.closure.delta import with_delta_closure
+
+    return with_delta_closure(load_robot(_data_file("delta.yaml")), free=_free_list("delta.yaml"))
+
+
+@register("kiwibot")
+@functools.cache
+def kiwibot():
+    """The Kiwibot of seed 004 Table 4.4: 16 MCPC bodies, actuators 2-4, two spherical closures
+    (15-13, 16-14) solved by the generic LM closure from the closed home setting, tool = nacelle
+    frame 10; 39 free parameters as marked in the table."""
+    return load_robot(_data_file("kiwibot.yaml")).with_free(_free_list("kiwibot.yaml"))

@@ -1,0 +1,446 @@
+"""The Delta robot: nominal direct and inverse solutions (seed 004 §2.6) and a fast exact closure
+of the Table 4.6 MCPC model.
+
+Nominal model (§2.6, Figure 2.6): base radius rb, nacelle radius rn, actuated arm n, parallel
+rods m, arms at azimuths psi_i; theta_i is the actuated angle below the horizontal, so the
+elbow is b_i = [(rb + n cos th_i) cos psi_i, (rb + n cos th_i) sin psi_i, -n sin th_i]
+(eq 2.114-2.115) and the nacelle stays parallel to the base.
+
+- `direct`: Clavel's variation (eq 2.135-2.146): shift each elbow inwards by rn so that the three
+  rod spheres meet in the nacelle centre P, express the spheres in a frame Fs with B'1 at the
+  origin, B'2 on its 1 axis and B'3 in its 1-2 plane, and take the lower intersection.
+- `inverse`: per arm, in the frame Fu whose 1 axis points to A_i (eq 2.147-2.158), the elbow
+  lies on the circle of the arm and on the sphere of radius m around C_i; the elbow-out
+  intersection is taken.
+
+Closure of the full 30-body MCPC model (Table 4.6, `jaxcal/robots/data/delta.yaml`): every rod
+but the first ends in a universal joint whose centre does not move with the joint angles (bodies
+16, 19, 22, 25, 28 sit on the elbow axis), so its rod end sweeps a sphere of radius |d_rod|
+around that centre. The 20 free joints therefore reduce to the 5 joints of rod 1 (universal
+5-6, ball 7-8-9, which carry the nacelle) under 5 sphere conditions |o_closure - c_k| = L_k:
+a square system solved by Newton from the nominal direct solution. The other rods' universal
+angles then follow by atan2 and their spin joints (17, 20, 23, 26, 29) do not move anything
+(set to 0). Every sample is checked on the whole tree: the 15 closure residuals (positions of
+the spherical closure pairs) must have norm <= `CLOSURE_TOL` (the thesis' 1e-10), else the
+sample is flagged. Derivatives come from the implicit function theorem: one Newton step taken
+from the (gradient-stopped) converged point, dx/da = -J^-1 dF/da.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.closure.core import FAIL_OFFSET, Closure, ClosureSolution
+from jaxcal.kin.model import joint_variables
+from jaxcal.kin.pose import Pose
+from jaxcal.kin.rotations import rot_x, rot_y
+
+CLOSURE_TOL = 1e-10  # closure residual norm above which a sample is infeasible (seed 004 §4.3)
+NEWTON_STEPS = 8
+NEWTON_TOL = 1e-12  # m; the final implicit step squares this
+
+
+@dataclasses.dataclass(frozen=True)
+class DeltaGeometry:
+    """Nominal Delta dimensions (m) and arm azimuths psi (rad), in the order of the actuators."""
+
+    rb: float = 0.2805
+    rn: float = 0.196
+    n: float = 0.6
+    m: float = 0.9
+    psi: tuple = (0.0, -2.0 * np.pi / 3.0, 2.0 * np.pi / 3.0)
+
+
+# The Canterbury Delta of Table 4.6: actuators 2, 3, 4 at psi = 0, -120, +120 deg.
+NOMINAL = DeltaGeometry()
+
+
+def _radial(psi):
+    return jnp.stack([jnp.cos(psi), jnp.sin(psi), jnp.zeros_like(psi)], axis=-1)
+
+
+def elbows(theta, g: DeltaGeometry = NOMINAL):
+    """Elbow points B_i (3, 3), one row per arm (eq 2.114)."""
+    psi = jnp.asarray(g.psi)
+    r = g.rb + g.n * jnp.cos(theta)
+    return jnp.stack([r * jnp.cos(psi), r * jnp.sin(psi), -g.n * jnp.sin(theta)], axis=-1)
+
+
+def direct(theta, g: DeltaGeometry = NOMINAL):
+    """Nacelle centre P (3,) for actuator angles theta (3,) and a feasibility flag (eq 2.135-2.146)."""
+    theta = jnp.asarray(theta, dtype=jnp.float64)
+    b = elbows(theta, g) - g.rn * _radial(jnp.asarray(g.psi))  # B'_i, eq 2.135
+    e1 = b[1] - b[0]
+    i_s = e1 / jnp.linalg.norm(e1)
+    k_s = jnp.cross(e1, b[2] - b[0])
+    k_s = k_s / jnp.linalg.norm(k_s)
+    k_s = jnp.where(k_s[2] < 0, -k_s, k_s)  # 3 axis upwards whatever the order of the arms
+    j_s = jnp.cross(k_s, i_s)
+    a = e1 @ i_s  # sphere centres (0,0,0), (a,0,0), (b,c,0) in Fs, eq 2.139-2.141
+    bb = (b[2] - b[0]) @ i_s
+    c = (b[2] - b[0]) @ j_s
+    p1 = a / 2.0
+    p2 = c / 2.0 + (bb**2 - a * bb) / (2.0 * c)
+    h2 = g.m**2 - p1**2 - p2**2
+    ok = h2 >= 0.0
+    p3 = -jnp.sqrt(jnp.where(ok, h2, 0.0))  # lower intersection, eq 2.144
+    P = b[0] + p1 * i_s + p2 * j_s + p3 * k_s  # eq 2.145
+    return P, ok
+
+
+def inverse(P, g: DeltaGeometry = NOMINAL):
+    """Actuator angles theta (3,) placing the nacelle centre at P (3,), and a feasibility flag
+    (eq 2.147-2.158). In Fu the elbow is (rb + n cos th, 0, -n sin th) and |B - C| = m gives
+    e cos th + c3 sin th = K / (2 n) with e = rb - c1, K = m^2 - n^2 - e^2 - c2^2 - c3^2."""
+    P = jnp.asarray(P, dtype=jnp.float64)
+    psi = jnp.asarray(g.psi)
+    cp, sp = jnp.cos(psi), jnp.sin(psi)
+    c1 = cp * P[0] + sp * P[1] + g.rn  # C_i in Fu (eq 2.148-2.149)
+    c2 = -sp * P[0] + cp * P[1]
+    c3 = P[2]
+    e = g.rb - c1
+    k = g.m**2 - g.n**2 - e**2 - c2**2 - c3**2
+    rho = jnp.sqrt(e**2 + c3**2)
+    cosine = k / (2.0 * g.n * rho)
+    ok = jnp.all(jnp.abs(cosine) <= 1.0)
+    phi = jnp.arctan2(c3, e)
+    theta = phi + jnp.arccos(jnp.clip(cosine, -1.0, 1.0))  # elbow-out branch
+    return jnp.arctan2(jnp.sin(theta), jnp.cos(theta)), ok
+
+
+def grid(center=(0.0, 0.0, -1.0), spacing=0.1, n=5):
+    """The n x n x n measurement/compensation grid of §4.4.2 (default 125 points, 400 mm cube)."""
+    ax = (np.arange(n) - (n - 1) / 2.0) * spacing
+    X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
+    return np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=-1) + np.asarray(center, float)
+
+
+# -- closure of the Table 4.6 MCPC model -------------------------------------------------------
+ACTUATORS = (2, 3, 4)
+ROD1 = (5, 6, 7, 8, 9)  # universal 5-6, rod 7, ball 7-8-9; body 9 is the nacelle
+NACELLE, TOOL = 9, 30
+CLOSURES = (10, 11, 12, 13, 14)  # nacelle ends of rods 2-6 (spherical closures)
+RODS = ((15, 16, 17), (18, 19, 20), (21, 22, 23), (24, 25, 26), (27, 28, 29))  # universal + rod end
+R_NACELLE = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # nominal nacelle frame, Rz(-pi/2)
+_BALL = np.asarray(rot_x(np.pi / 2) @ rot_y(-np.pi / 2))  # constant part of the ball joint 7-8-9
+
+
+def check_structure(robot):
+    """Raise if `robot` is not laid out as Table 4.6 (the closure below relies on that layout)."""
+    if len(robot.bodies) != 30 or robot.tip != TOOL - 1:
+        raise ValueError(f"robot {robot.name!r} is not the 30-body Delta model of Table 4.6")
+    for k, body in enumerate(robot.bodies, start=1):
+        want = 2 if k in CLOSURES else (3 if k in (1, TOOL) else 0)
+        if body.kind != want or bool(body.inputs) != (k in ACTUATORS):
+            raise ValueError(f"robot {robot.name!r}, body {k}: type {body.kind} does not match Table 4.6")
+
+
+def _statics(robot, a):
+    """The joint-independent part of every body transform, for all 30 bodies at once:
+    T_k = [V_k, t_k] Rz(a3_k + q_k) Trans(0, 0, d3_k) with V_k = Rx(a1) Ry(a2), t_k = V_k (d1, d2, 0)
+    (the MCPC transform of `jaxcal.kin.conventions.mcpc_frame`)."""
+    a_ext = jnp.append(jnp.asarray(a, dtype=jnp.float64), 0.0)
+    rows = a_ext[jnp.array([b.rows for b in robot.bodies])]  # (30, 6); unused entries read 0
+    c1, s1, c2, s2 = jnp.cos(rows[:, 0]), jnp.sin(rows[:, 0]), jnp.cos(rows[:, 1]), jnp.sin(rows[:, 1])
+    zero, one = jnp.zeros_like(c1), jnp.ones_like(c1)
+    Rx = jnp.stack([jnp.stack([one, zero, zero], -1), jnp.stack([zero, c1, -s1], -1), jnp.stack([zero, s1, c1], -1)], -2)
+    Ry = jnp.stack([jnp.stack([c2, zero, s2], -1), jnp.stack([zero, one, zero], -1), jnp.stack([-s2, zero, c2], -1)], -2)
+    V = Rx @ Ry
+    t = V[:, :, 0] * rows[:, 3:4] + V[:, :, 1] * rows[:, 4:5]
+    return {"rows": rows, "V": V, "t": t}
+
+
+def _row(st, k):
+    return st["rows"][k - 1]
+
+
+def _local(st, k, qk=0.0):
+    """Transform(s) of body k (an int or an array of body numbers) relative to the parent, with
+    joint value(s) qk added to a3 (rotary bodies; 0 for the others)."""
+    idx = jnp.asarray(k) - 1
+    V, row = st["V"][idx], st["rows"][idx]
+    angle = row[..., 2] + qk
+    c, s = jnp.cos(angle)[..., None], jnp.sin(angle)[..., None]
+    R = jnp.stack([V[..., 0] * c + V[..., 1] * s, V[..., 1] * c - V[..., 0] * s, V[..., 2]], axis=-1)
+    return Pose(R, st["t"][idx] + row[..., 5:6] * V[..., 2])
+
+
+def _fixed(robot, st, q):
+    """Everything that does not depend on the free joints: actuated arm frames, the elbow frame
+    of rod 1 at zero joint angle, and for rods 2-6 the elbow frames R_pre at zero angle, the
+    universal centres c_k and the rod lengths L_k."""
+    arms = _local(st, 1).compose(_local(st, np.array(ACTUATORS), q))  # (3,) frames
+    rod_arm = np.array([ACTUATORS.index(robot.bodies[r[0] - 1].parent + 1) for r in RODS])
+    parents = Pose(arms.R[rod_arm], arms.p[rod_arm])
+    f1 = parents.compose(_local(st, np.array([r[0] for r in RODS])))
+    f2 = f1.compose(_local(st, np.array([r[1] for r in RODS])))
+    ends = st["rows"][np.array([r[2] for r in RODS]) - 1]
+    i1 = ACTUATORS.index(robot.bodies[ROD1[0] - 1].parent + 1)
+    arm1 = Pose(arms.R[i1], arms.p[i1])
+    return {"arm1": arm1, "elbow1": arm1.compose(_local(st, ROD1[0])), "pre": f1.R, "centres": f2.p,
+            "lengths": jnp.hypot(ends[:, 3], ends[:, 4])}
+
+
+def _chain(st, f, bodies, x):
+    """Frames of a serial run of bodies from frame f with joint values x (one trig evaluation for
+    the whole run: fewer kernels, a faster compile)."""
+    locs = _local(st, np.array(bodies), jnp.stack(x))
+    out = []
+    for i in range(len(bodies)):
+        f = f.compose(Pose(locs.R[i], locs.p[i]))
+        out.append(f)
+    return out
+
+
+def _nacelle(robot, st, fixed, x):
+    """Frame of the last body of rod 1 reached by x: with x = (q5, q6, q7, q8, q9) the nacelle (body 9)."""
+    return _chain(st, fixed["arm1"], ROD1[: len(x)], x)[-1]
+
+
+def _closure_points(robot, st, nacelle):
+    return nacelle.apply(_local(st, np.array(CLOSURES)).p)
+
+
+def _sphere_residual(robot, st, fixed, x):
+    """F(x) = |o_k - c_k| - L_k for the five nacelle closure points (m)."""
+    pts = _closure_points(robot, st, _nacelle(robot, st, fixed, x))
+    return jnp.linalg.norm(pts - fixed["centres"], axis=-1) - fixed["lengths"]
+
+
+def _universal_angles(R_pre, u):
+    """Joint angles (qa, qb) of a universal joint whose rod direction is Rz(qa) Rx(pi/2) Rz(qb) e1
+    = (cos qa cos qb, sin qa cos qb, sin qb) in the frame R_pre; u is a unit vector in the world."""
+    v = R_pre.T @ u
+    return jnp.arctan2(v[1], v[0]), jnp.arctan2(v[2], jnp.hypot(v[0], v[1]))
+
+
+def _start(robot, st, q, fixed, tool_offset):
+    """Rod-1 joint values from the nominal direct solution (nacelle centre P, nacelle parallel
+    to the base): universal angles from the rod direction, ball angles from the nacelle
+    orientation (R6^T R9 C^T = Rz(q7) Ry(-q8) Rx(-q9), a Z-Y-X decomposition)."""
+    theta = q + jnp.stack([_row(st, k)[2] for k in ACTUATORS])
+    P, ok = direct(theta)
+    o9 = P - R_NACELLE @ tool_offset
+    f6 = fixed["elbow1"].compose(_local(st, ROD1[1]))
+    u = o9 - f6.p
+    q5, q6 = _universal_angles(fixed["elbow1"].R, u / jnp.linalg.norm(u))
+    f6 = _nacelle(robot, st, fixed, (q5, q6))  # frame 6 with the solved universal angles
+    N = f6.R.T @ jnp.asarray(R_NACELLE) @ jnp.asarray(_BALL).T
+    q7 = jnp.arctan2(N[1, 0], N[0, 0])
+    q8 = jnp.arctan2(N[2, 0], jnp.hypot(N[2, 1], N[2, 2]))
+    q9 = -jnp.arctan2(N[2, 1], N[2, 2])
+    return jnp.stack([q5, q6, q7, q8, q9]), ok
+
+
+def _residual_and_jacobian(robot, st, fixed, x):
+    """F(x) and its Jacobian dF/dx. Each rod-1 joint j turns about its axis z_j through o_j, so
+    a nacelle point moves by z_j x (p - o_j) and dF_k/dq_j = n_k . (z_j x (p_k - o_j)) with n_k
+    the unit rod direction (the geometric Jacobian; a test checks it against jax.jacfwd)."""
+    frames = _chain(st, fixed["arm1"], ROD1, x)
+    axes = [f.R[:, 2] for f in frames]
+    origins = [f.p for f in frames]
+    pts = _closure_points(robot, st, frames[-1])
+    d = pts - fixed["centres"]
+    dist = jnp.linalg.norm(d, axis=-1)
+    n = d / dist[:, None]
+    moves = jnp.cross(jnp.stack(axes)[None, :, :], pts[:, None, :] - jnp.stack(origins)[None, :, :])  # (5 points, 5 joints, 3)
+    return dist - fixed["lengths"], jnp.einsum("kc,kjc->kj", n, moves)
+
+
+def _newton(robot, st, fixed, x0):
+    """Newton on the square 5 x 5 sphere system until max |F| <= NEWTON_TOL (at most NEWTON_STEPS)."""
+
+    def step(carry):
+        x, _, i = carry
+        F, J = _residual_and_jacobian(robot, st, fixed, x)
+        return x - jnp.linalg.solve(J, F), jnp.max(jnp.abs(F)), i + 1
+
+    def more(carry):
+        _, err, i = carry
+        return (err > NEWTON_TOL) & (i < NEWTON_STEPS)
+
+    return jax.lax.while_loop(more, step, (x0, jnp.inf, 0))[0]
+
+
+def _tool_offset(robot):
+    """Tool point in the nacelle frame at the nominal parameters (row 30)."""
+    return _local(_statics(robot, robot.nominal_np), TOOL).p
+
+
+def _rod_angles(robot, st, fixed, nacelle):
+    """Universal angles (qa (5,), qb (5,)) of rods 2-6 pointing each rod end at its nacelle closure
+    point (as `_universal_angles`)."""
+    u = _closure_points(robot, st, nacelle) - fixed["centres"]
+    v = jnp.einsum("kji,kj->ki", fixed["pre"], u)  # R_pre^T u per rod
+    return jnp.arctan2(v[:, 1], v[:, 0]), jnp.arctan2(v[:, 2], jnp.hypot(v[:, 0], v[:, 1]))
+
+
+def closure_error(robot, st, q, nacelle, rods):
+    """Norm of the 15 spherical-closure position residuals: each nacelle closure point against
+    the end of its rod, built joint by joint (elbow at the actuated arm, universal angles
+    `rods`, spin joint at 0)."""
+    base = _local(st, 1)
+    arms = {k: base.compose(_local(st, k, q[i])) for i, k in enumerate(ACTUATORS)}
+    pts = _closure_points(robot, st, nacelle)
+    res = []
+    for k, (e1, e2, end) in enumerate(RODS):
+        f = arms[robot.bodies[e1 - 1].parent + 1]
+        f = f.compose(_local(st, e1, rods[0][k])).compose(_local(st, e2, rods[1][k])).compose(_local(st, end))
+        res.append(pts[k] - f.p)
+    return jnp.linalg.norm(jnp.stack(res))
+
+
+def structure_ok(robot, st):
+    """True when the fixed entries the reduction relies on hold: the universal joints of rods 2-6
+    are perpendicular and centred on the elbow axis (rows 16, 19, ...: a1 = pi/2, a2 = a3 = d1 = 0)
+    and the rod ends lie on the rod axis (rows 17, 20, ...: a1 = a2 = d2 = 0)."""
+    dev = []
+    for _, e2, end in RODS:
+        r2, r3 = _row(st, e2), _row(st, end)
+        dev += [r2[0] - np.pi / 2, r2[1], r2[2], r2[3], r3[0], r3[1], r3[4]]
+    return jnp.max(jnp.abs(jnp.stack(dev))) <= 1e-12
+
+
+def solve_single(robot, a, q):
+    """Closed Delta for one actuator vector q (3,): (rod-1 joints x (5,), rod angles, tool Pose,
+    ok, closure residual norm). x is differentiable in a and q by the implicit function theorem.
+
+    With `structure_ok`, the closure residual of pair k (nacelle point minus rod end, the rod
+    pointed at the point) has norm |F_k|, so |F| is the norm of all 15 closure residuals
+    (a test checks this against `closure_error` on the whole tree)."""
+    st = _statics(robot, a)
+    fixed = _fixed(robot, st, q)
+    st_sg, q_sg = jax.tree_util.tree_map(jax.lax.stop_gradient, (st, q))
+    fixed_sg = jax.tree_util.tree_map(jax.lax.stop_gradient, fixed)
+    x0, ok_start = _start(robot, st_sg, q_sg, fixed_sg, _tool_offset(robot))
+    x_star = jax.lax.stop_gradient(_newton(robot, st_sg, fixed_sg, x0))
+    finite = jnp.all(jnp.isfinite(x_star))
+    x_star = jnp.where(finite, x_star, jnp.where(jnp.all(jnp.isfinite(x0)), x0, 0.0))
+    F_star, J = _residual_and_jacobian(robot, st_sg, fixed_sg, x_star)
+    x = x_star - jnp.linalg.solve(J, _sphere_residual(robot, st, fixed, x_star))  # zero step; carries dx/d(a, q)
+    nacelle = _nacelle(robot, st, fixed, x)
+    rods = _rod_angles(robot, st, fixed, nacelle)
+    err = jnp.where(finite, jnp.linalg.norm(F_star), jnp.inf)
+    ok = ok_start & finite & structure_ok(robot, st_sg) & (err <= CLOSURE_TOL)
+    return x, rods, nacelle.compose(_local(st, TOOL)), ok, err
+
+
+def _closed_single(robot, a, q):
+    """(tool Pose, theta_free in the Closure's order, closure residual norm, ok) for one q (3,)."""
+    x, rods, tool, ok, err = solve_single(robot, a, q)
+    theta_free = jnp.concatenate([x, jnp.stack(rods, axis=-1).ravel()])  # (q15, q16, q18, q19, ...)
+    return tool, theta_free, err, ok
+
+
+def _batch(fn, q):
+    q = jnp.asarray(q, dtype=jnp.float64)
+    if q.ndim == 1:
+        return fn(q)
+    lead = q.shape[:-1]
+    out = jax.vmap(fn)(q.reshape(-1, q.shape[-1]))
+    return jax.tree_util.tree_map(lambda v: v.reshape(lead + v.shape[1:]), out)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def solve(robot, a, q) -> ClosureSolution:
+    """Closure of the Table 4.6 Delta for actuator settings q (..., 3): free joints in the order
+    of `FREE` (15,), closure residual norm, ok flag, and the Newton iterations (constant here)."""
+    a = jnp.asarray(a, dtype=jnp.float64)
+
+    def one(qi):
+        _, theta, err, ok = _closed_single(robot, a, joint_variables(robot, a, qi))
+        return ClosureSolution(theta, err, ok, jnp.asarray(NEWTON_STEPS))
+
+    return _batch(one, q)
+
+
+def _pose_vector(robot, a, q):
+    """(R.ravel(), p) of the tool (12,) and the closure flag as 0/1 (aux)."""
+    _, _, tool, ok, _ = solve_single(robot, a, q)
+    return jnp.concatenate([tool.R.ravel(), tool.p]), ok.astype(jnp.float64)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _tool_vector(robot, a, q):
+    return _pose_vector(robot, a, q)
+
+
+@_tool_vector.defjvp
+def _tool_vector_jvp(robot, primals, tangents):
+    """Tangent of the tool pose from its per-sample Jacobian by reverse mode (12 cotangents instead
+    of one forward pass per parameter): under `jax.jacfwd` over ~170 parameters the Jacobian is
+    computed once per sample and contracted with every tangent."""
+    a, q = primals
+    da, dq = tangents
+    vec, pullback, ok = jax.vjp(functools.partial(_pose_vector, robot), a, q, has_aux=True)
+    Ja, Jq = jax.vmap(pullback)(jnp.eye(vec.shape[0]))
+    return (vec, ok), (Ja @ da + Jq @ dq, jnp.zeros_like(ok))
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def forward(robot, a, q) -> Pose:
+    """Tool pose of the Table 4.6 Delta for actuator settings q (..., 3), closure solved inside.
+    A sample that does not close gets FAIL_OFFSET added to its position (as `forward_closed`)."""
+    a = jnp.asarray(a, dtype=jnp.float64)
+
+    def one(qi):
+        vec, ok = _tool_vector(robot, a, joint_variables(robot, a, qi))
+        p = jnp.where(ok > 0, vec[9:], jax.lax.stop_gradient(vec[9:]) + FAIL_OFFSET)
+        return Pose(vec[:9].reshape(3, 3), p)
+
+    return _batch(one, q)
+
+
+def closed(robot, a, q):
+    """Per-sample flags: True where the Delta closes to CLOSURE_TOL."""
+    return solve(robot, a, q).ok
+
+
+@dataclasses.dataclass(frozen=True)
+class DeltaClosure(Closure):
+    """The generic closure description of the Table 4.6 Delta plus its fast path: `jc.forward`
+    calls `forward(robot, a, q)` (nominal direct solution start + Newton on the reduced square
+    system); the generic LM of `jaxcal.closure` still works from `start` near the home setting."""
+
+    def forward(self, robot, a, q) -> Pose:
+        return forward(robot, a, q)
+
+    def solve(self, robot, a, q) -> ClosureSolution:
+        return solve(robot, a, q)
+
+
+def full_precision_nominal(robot, g: DeltaGeometry = NOMINAL):
+    """The nominal parameters with the nacelle points 10-14 at full precision (Table 4.6 prints
+    4 digits, ~4e-5 m off): each point is the nacelle centre + rn radial(psi) -+ half the
+    parallelogram spread along its arm's elbow axis, in the nacelle frame R_NACELLE."""
+    a = np.array(robot.nominal_np)
+    centre = np.array([0.15, -0.196, 0.0])  # tool point (row 30) in the nacelle frame
+    half = 0.15
+    for body, arm, side in [(10, 0, -1), (11, 1, 1), (12, 1, -1), (13, 2, 1), (14, 2, -1)]:
+        psi = g.psi[arm]
+        v = g.rn * np.array([np.cos(psi), np.sin(psi), 0]) + side * half * np.array([-np.sin(psi), np.cos(psi), 0])
+        local = R_NACELLE.T @ v + centre
+        a[robot.index(f"j{body}.d1")], a[robot.index(f"j{body}.d2")] = local[0], local[1]
+    return jnp.asarray(a)
+
+
+PAIRS = tuple((rod[2], c, "position") for c, rod in zip(CLOSURES, RODS))
+FREE = ROD1 + tuple(b for rod in RODS for b in rod[:2])
+
+
+def with_delta_closure(robot, free=None):
+    """The Table 4.6 robot with a `DeltaClosure` whose generic start is the closed home setting,
+    and (optionally) the free parameters given by name."""
+    check_structure(robot)
+    plain = robot.replace(closure=DeltaClosure(pairs=PAIRS, free=FREE, start=(0.0,) * len(FREE)))
+    with jax.disable_jit():  # one setting: op by op is quicker than compiling
+        start = solve(plain, plain.nominal, plain.home)
+    if not bool(start.ok):
+        raise ValueError(f"robot {robot.name!r}: the Delta does not close at its home setting {plain.home_np}")
+    out = robot.replace(closure=DeltaClosure(pairs=PAIRS, free=FREE, start=tuple(float(v) for v in start.theta_free)))
+    return out if free is None else out.with_free(free)
