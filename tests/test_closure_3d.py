@@ -149,3 +149,14 @@ def test_yaml_round_trip_and_bad_closure_column(fb3, tmp_path):
     bad.write_text(text)
     with pytest.raises(jc.robots.RobotFileError, match=r"bad.yaml.*row 6: field 'closure' = 9 must name another row"):
         jc.load_robot(str(bad))
+
+
+def test_identify_leaves_out_samples_that_do_not_close_at_the_start(fb3):
+    """Samples that do not close at the starting geometry are dropped with a warning naming them
+    (not allowed to dominate the residual scale and stall the fit) and reported in `info`."""
+    q = jnp.array([[0.3], [1.5], [-0.8], [0.6]])
+    data = jc.simulate(fb3, fb3.nominal, q, "position")
+    with pytest.warns(UserWarning, match=r"do not close.*\[1\]"):
+        fit = jc.identify(fb3, data, a0=table_4_2b(fb3), known=("dev", "tool"), free=["j1.d1", "j3.d1"])
+    assert fit.info["unclosed_samples"] == (1,) and fit.info["n_samples"] == 3
+    assert np.isfinite(fit.rms_after) and fit.rms_after < fit.rms_before

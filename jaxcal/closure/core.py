@@ -293,7 +293,11 @@ def forward_closed(robot: Robot, a, q, start=None) -> Pose:
 
 
 def closed(robot: Robot, a, q, start=None):
-    """Per-sample boolean flags: True where the loops close to |v| <= tol."""
+    """Per-sample boolean flags: True where the loops close to |v| <= tol. A mechanism-specific
+    closure (one with its own `solve`, e.g. the Delta's) answers for itself unless a start is given."""
+    own = getattr(robot.closure, "solve", None)
+    if own is not None and start is None:
+        return own(robot, a, q).ok
     return solve(robot, a, q, start).ok
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
+import warnings
 
 import equinox as eqx
 import jax
@@ -264,6 +265,27 @@ class FitResult:
         return "\n".join(lines)
 
 
+def _drop_unclosed(robot: Robot, a0, data: Dataset, sample_weights):
+    """Samples of a closed mechanism whose loops do not close at the start `a0` carry no usable
+    reading (seed 004 §4.3): they are dropped with a warning naming them, and their indices
+    (in the given dataset) are returned so the caller can report them."""
+    if robot.closure is None:
+        return data, sample_weights, ()
+    from jaxcal.closure import closed
+
+    ok = np.asarray(closed(robot, a0, jnp.asarray(data.q)))
+    if ok.all():
+        return data, sample_weights, ()
+    bad = tuple(int(i) for i in np.flatnonzero(~ok))
+    if not ok.any():
+        raise ValueError(f"no sample of {robot.name!r} closes at the starting parameters (samples 0..{len(ok) - 1})")
+    warnings.warn(f"{robot.name}: {len(bad)} sample(s) do not close at the starting parameters and are left out: "
+                  f"{list(bad)[:20]}{' ...' if len(bad) > 20 else ''}", stacklevel=3)
+    keep = np.flatnonzero(ok)
+    sw = None if sample_weights is None else np.asarray(sample_weights, float)[keep]
+    return data.subset(keep), sw, bad
+
+
 def _x_scale(units):
     """Typical size of a parameter change: 0.01 (m or rad) for geometry, 1 for gains and scales."""
     return np.array([1.0 if u in ("gain", "scale") else 0.01 for u in units])
@@ -324,6 +346,7 @@ def identify(
         raise ValueError(f"unknown solver {solver!r}; expected one of {SOLVERS}")
     names = tuple(robot.names) + tuple(device.names)
     a0 = robot.nominal if a0 is None else jnp.asarray(a0, dtype=jnp.float64)
+    data, sample_weights, unclosed = _drop_unclosed(robot, a0, data, sample_weights)
     d0 = device.nominal if device_params is None else jnp.asarray(device_params, dtype=jnp.float64)
     a_ref = jnp.concatenate([a0, d0])
     robot_free = _select(free, robot.names, robot.free_mask)
@@ -443,7 +466,7 @@ def identify(
         regrouped=regrouped, weak_directions=weak,
         timings={"compile_s": compile_s, "run_s": run_s, "total_s": time.perf_counter() - t_start},
         history=hist, sigma=sigma_hat, covariance=covariance,
-        info={"n_samples": len(data), "estimated_index": est_idx, "solver": solver,
+        info={"n_samples": len(data), "unclosed_samples": unclosed, "estimated_index": est_idx, "solver": solver,
               "sigma_position": sigma_position, "sigma_orientation": sigma_orientation},
     )
 
