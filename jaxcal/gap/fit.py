@@ -19,13 +19,16 @@ import optimistix as optx
 from jaxcal.fit.identify import _solver
 from jaxcal.gap.effects import GapModel, residuals
 
-BUCKET = 64
+SIZE_BUCKETS = (96, 192, 320)  # padded sample counts; beyond 320, multiples of 128
 RTOL, ATOL = 1e-5, 1e-7  # LM tolerances on the cost and on the step z (z in units of the typical parameter size)
 
 
 def padded_size(n: int) -> int:
-    """Samples are padded to a multiple of BUCKET so datasets of similar size share compiled code."""
-    return max(BUCKET, int(np.ceil(n / BUCKET)) * BUCKET)
+    """Samples are padded (weight 0) to a bucket size so datasets of similar size share compiled code."""
+    for b in SIZE_BUCKETS:
+        if n <= b:
+            return b
+    return int(np.ceil(n / 128)) * 128
 
 
 def covariate_matrix(model: GapModel, covariates: dict, n: int):

@@ -8,7 +8,7 @@ import numpy as np
 
 from jaxcal.fit.data import Dataset, _as_device
 from jaxcal.gap.effects import GapModel, gap_model
-from jaxcal.gap.fit import covariate_matrix, predict
+from jaxcal.gap.fit import covariate_matrix, padded_size, predict
 from jaxcal.kin.rotations import exp_so3
 
 
@@ -24,8 +24,14 @@ def effect_vector(model: GapModel, values: dict) -> np.ndarray:
 
 def readings(model: GapModel, x, q, covariates: dict):
     """Noise-free readings of the full model x at joint readings q with the given covariates."""
-    C, _ = covariate_matrix(model, covariates, len(q))
-    return np.asarray(predict(jnp.asarray(x), jnp.asarray(q, dtype=jnp.float64), jnp.asarray(C), model=model))
+    n = len(q)
+    C, _ = covariate_matrix(model, covariates, n)
+    npad = padded_size(n)  # padded so that datasets of similar size share one compiled function
+    qp = np.tile(model.robot.home_np, (npad, 1))
+    qp[:n] = q
+    Cp = np.zeros((npad, C.shape[1]))
+    Cp[:n] = C
+    return np.asarray(predict(jnp.asarray(x), jnp.asarray(qp), jnp.asarray(Cp), model=model))[:n]
 
 
 def add_noise(device_kind: str, y, sigma_position: float, sigma_orientation: float = 0.0, seed: int = 0):
