@@ -168,12 +168,29 @@ def generate(folder, n_cases, seed):
     _write_json(os.path.join(folder, "labels.json"), labels)
 
 
-def diagnose_all(folder, limit_s=None):
-    """Diagnose every case (reading only the case files); predictions.json is rewritten after each case."""
-    out_path = os.path.join(folder, "predictions.json")
+def _shard(folder, shard):
+    """Case files of shard "i/n": cases sorted by (robot, device, padded size) so a process compiles few shapes."""
+    from jaxcal.gap.fit import padded_size
+
+    files = sorted(os.listdir(os.path.join(folder, "cases")))
+    if shard is None:
+        return files
+    i, n = (int(v) for v in shard.split("/"))
+    keyed = []
+    for fn in files:
+        z = np.load(os.path.join(folder, "cases", fn))
+        keyed.append((str(z["robot"]), str(z["device"]), padded_size(len(z["q"])), fn))
+    keyed.sort()
+    chunk = int(np.ceil(len(keyed) / n))
+    return [k[-1] for k in keyed[i * chunk:(i + 1) * chunk]]
+
+
+def diagnose_all(folder, limit_s=None, shard=None, out_path=None):
+    """Diagnose the cases (reading only the case files); the predictions file is rewritten after each case."""
+    out_path = out_path or os.path.join(folder, "predictions.json")
     preds = json.load(open(out_path)) if os.path.exists(out_path) else {}
     t_start = time.time()
-    for fn in sorted(os.listdir(os.path.join(folder, "cases"))):
+    for fn in _shard(folder, shard):
         key = fn[:-4]
         if key in preds:
             continue
@@ -279,12 +296,14 @@ def main(argv=None):
     ap.add_argument("--folder", default="/tmp/gap_blind")
     ap.add_argument("--limit-s", type=float, default=None, help="stop diagnosing after this many seconds (score what is done)")
     ap.add_argument("--stage", choices=("all", "generate", "diagnose", "score"), default="all")
+    ap.add_argument("--shard", default=None, help="diagnose only shard i/n (parallel processes)")
+    ap.add_argument("--predictions", default=None, help="predictions file (default FOLDER/predictions.json)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "gap_blind"))
     args = ap.parse_args(argv)
     if args.stage in ("all", "generate") and not os.path.exists(os.path.join(args.folder, "labels.json")):
         generate(args.folder, args.cases, args.seed)
     if args.stage in ("all", "diagnose"):
-        diagnose_all(args.folder, args.limit_s)
+        diagnose_all(args.folder, args.limit_s, args.shard, args.predictions)
     if args.stage in ("all", "score"):
         res = score(args.folder)
         res["settings"] = {"cases_generated": args.cases, "seed": args.seed}

@@ -165,6 +165,23 @@ def _noise_floor_repeats(data, groups):
     return float(np.sqrt(ss / dof))
 
 
+def _joint_motion(model, J, q, npad, m):
+    """Unit direction (N, m, n) of each joint's motion in the weighted residual space, from the effect
+    columns of J: d pred/d q_j = sin q_j J_gear.s1 + cos q_j J_gear.c1 (revolute), J_gain / q_j (prismatic)."""
+    n = q.shape[0]
+    out = np.zeros((n, m, q.shape[1]))
+    for j in range(q.shape[1]):
+        if model.revolute[j]:
+            s1, c1 = model.index("gear", (j,))[:2]
+            col = (np.sin(q[:, j])[:, None] * J[:, s1].reshape(npad, m)[:n] + np.cos(q[:, j])[:, None] * J[:, c1].reshape(npad, m)[:n])
+        else:
+            g = model.index("encoder_gain", (j,))[0]
+            safe = np.where(np.abs(q[:, j]) > 1e-6, q[:, j], np.inf)
+            col = J[:, g].reshape(npad, m)[:n] / safe[:, None]
+        out[:, :, j] = col / np.maximum(np.linalg.norm(col, axis=1, keepdims=True), 1e-300)
+    return out
+
+
 def _lstsq_step(J, r, cols, rows):
     """Gauss-Newton step on the columns `cols` using the rows `rows`: argmin ||r + J d||."""
     A = J[np.ix_(rows, cols)]
@@ -378,8 +395,10 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
     loads, tips = np.asarray(loads)[:n], np.asarray(tips)[:n]
     bases = wh.feature_bases(data.q, model.revolute, jn, loads, tips, data.covariates)
     labels = ["x", "y", "z", "rx", "ry", "rz"][:m]
-    feats_base = wh.decompose(oof_base, bases, tips, seed=seed)
-    feats_fin = wh.decompose(oof_fin, bases, tips, seed=seed)
+    motion = _joint_motion(model, J[folds], data.q, npad, m)
+    directions = {f"joint angle {jn[j]}": motion[:, :, j] for j in range(robot.n_inputs)}
+    feats_base = wh.decompose(oof_base, bases, tips, directions, seed=seed)
+    feats_fin = wh.decompose(oof_fin, bases, tips, directions, seed=seed)
     structure_p = float(min(1.0, min(f.p_value for f in feats_fin) * len(feats_fin))) if feats_fin else 1.0
     axis = wh.axis_rms(oof_base * comp_sigma[None, :] * 1e3, [f"{a} ({'mm' if i < 3 else 'mrad'})" for i, a in enumerate(labels)])
     where = {"axis_rms": axis,
@@ -401,7 +420,8 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
              "converged": bool(np.all(ok_base) and np.all(ok_final))}
     timings = {"lm_steps": steps, "solve_s": solve_s, "linear_s": lin_s, "final_s": time.perf_counter() - t_fin,
                "total_s": time.perf_counter() - t0}
-    plot_data = {"q": data.q, "tips": tips, "oof_base": oof_base * comp_sigma * 1e3, "oof_final": oof_fin * comp_sigma * 1e3,
+    plot_data = {"q": data.q, "motion": motion, "tips": tips, "oof_base": oof_base * comp_sigma * 1e3,
+                 "oof_final": oof_fin * comp_sigma * 1e3,
                  "joint_names": jn, "revolute": model.revolute, "labels": labels}
     return Diagnosis(robot.name, device.kind, verdict, joints, ranking, shrink, where, before, after, noise_floor, noise_source,
                      [(s["effect"], tuple(jn[j] for j in s["js"])) for s in selected], params, structure_p, not_candidates,

@@ -47,14 +47,14 @@ def plot_diagnosis(d, folder) -> list[str]:
     for j in range(nj):
         ax = axes[j, 0]
         x = np.degrees(q[:, j]) if pdata["revolute"][j] else q[:, j] * 1e3
-        for c, lab in enumerate(pdata["labels"][:3]):
-            ax.plot(x, before[:, c], ".", ms=3, label=f"{lab} geometry only")
-        ax.plot(x, np.linalg.norm(after[:, :3], axis=1), "k+", ms=4, label=f"|r| with {d.verdict}")
+        u = pdata["motion"][:, :, j]
+        ax.plot(x, np.sum(before * u, axis=1), ".", color="tab:red", ms=4, label="geometry only")
+        ax.plot(x, np.sum(after * u, axis=1), "+", color="k", ms=4, label=f"with {d.verdict}")
         ax.set_xlabel(f"{pdata['joint_names'][j]} ({'deg' if pdata['revolute'][j] else 'mm'})")
-        ax.set_ylabel("residual (mm)")
+        ax.set_ylabel("along motion (mm)")
         ax.axhline(0, color="0.6", lw=0.5)
-    axes[0, 0].legend(fontsize=7, ncol=4, loc="upper right")
-    fig.suptitle("held-out residual against each joint", fontsize=10)
+    axes[0, 0].legend(fontsize=8, ncol=2, loc="upper right")
+    fig.suptitle("held-out residual component along each joint's motion, against the joint value", fontsize=10)
     fig.tight_layout()
     paths.append(save_atomic(fig, os.path.join(folder, "joints.png")))
 

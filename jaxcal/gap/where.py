@@ -67,20 +67,32 @@ def _knn_share(nbr, r):
     return float(1.0 - np.sum((r - pred) ** 2) / max(np.sum(r**2), 1e-300))
 
 
-def decompose(r, bases: dict, tips, k_neighbours: int = 5, n_permutations: int = 400, seed: int = 0) -> list[Feature]:
-    """Share of the residual variance each feature explains, with its p-value (most significant first)."""
+def along(r, directions):
+    """Residual component along a unit direction per sample (N, 1), e.g. a joint's motion."""
+    return np.sum(r * directions, axis=1, keepdims=True)
+
+
+def decompose(r, bases: dict, tips, directions=None, k_neighbours: int = 5, n_permutations: int = 400, seed: int = 0) -> list[Feature]:
+    """Share of the residual variance each feature explains, with its p-value (most significant first).
+
+    directions: {feature name: (N, m) unit vectors}; for those features the residual component along
+    the direction (a joint's motion) is regressed instead of the full residual."""
     r = np.asarray(r, float)
     r = r - r.mean(axis=0)
-    n, m = r.shape
+    n = r.shape[0]
+    directions = directions or {}
     feats = []
     for name, X in bases.items():
         k = X.shape[1]
-        s = _share(X, r)
+        target = along(r, directions[name]) if name in directions else r
+        m = target.shape[1]
+        s = _share(X, target - target.mean(axis=0))
         dof = (n - k - 1) * m
         if dof <= 0:
             continue
         F = (s / (k * m)) / max((1 - s) / dof, 1e-300)
         feats.append(Feature(name, s, float(scipy.stats.f.sf(F, k * m, dof)), k))
+    m = r.shape[1]
     if n > 3 * k_neighbours:
         z = (tips - tips.mean(0)) / np.maximum(tips.std(0), 1e-12)
         d2 = np.sum((z[:, None, :] - z[None, :, :]) ** 2, axis=-1)
