@@ -27,6 +27,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 import jaxcal as jc  # noqa: E402
+from jaxcal.gap.diagnose import shrink_fraction  # noqa: E402
 from jaxcal.gap.effects import GLOBAL_EFFECTS, JOINT_EFFECTS, NEEDS, gap_model  # noqa: E402
 from jaxcal.gap.fit import loads_and_tips  # noqa: E402
 from jaxcal.gap.simulate import add_noise, effect_vector, readings  # noqa: E402
@@ -234,8 +235,8 @@ def score(folder):
         if lab["kind"] == "effect" and lab["magnitude"] >= 5 and lab["n"] >= 100:
             strong += 1
             right += ok
-        if lab["kind"] == "effect" and ok:
-            shrinks.append(pr["shrink"])
+        if lab["kind"] == "effect" and ok:  # shrink recomputed from the recorded RMS values (position, mm)
+            shrinks.append(shrink_fraction(pr["before"], pr["after"], pr["floor"]))
             if lab["joints"]:
                 joint_n += 1
                 joint_ok += set(lab["joints"]) <= set(pr["joints"])

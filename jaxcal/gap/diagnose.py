@@ -11,8 +11,8 @@ Method (DESIGN "The sim-to-real gap diagnosis"; issue 7):
    parameters added; significance by the F-test of the nested fit on all data, Bonferroni over
    candidates; BIC reported too. Greedy forward selection adds effects while one is significant.
 3. How far: the selected model is refitted by nonlinear LM on every fold; held-out RMS before and
-   after, shrink = 1 - after^2 / before^2, the remainder against the noise floor (repeated poses,
-   else the residual of the fit with its degrees of freedom).
+   after, the noise floor (repeated poses, else the residual of the fit with its degrees of
+   freedom) and shrink = (before^2 - after^2) / (before^2 - floor^2), the fraction of the gap closed.
 4. Verdict: "none" when no candidate is significant and the held-out residual has no structure;
    "unexplained" when structure remains (where.decompose, Bonferroni over features) that the
    selected effects do not capture; else the first selected effect.
@@ -138,6 +138,13 @@ class Diagnosis:
         from jaxcal.gap.plots import plot_diagnosis
 
         return plot_diagnosis(self, folder)
+
+
+def shrink_fraction(before, after, floor):
+    """Fraction of the held-out gap closed: (before^2 - after^2) / (before^2 - floor^2), clipped to [0, 1];
+    the gap is the held-out mean square above the noise floor (position RMS values)."""
+    gap = before**2 - floor**2
+    return float(np.clip((before**2 - after**2) / gap, 0.0, 1.0)) if gap > 0 else 0.0
 
 
 def _groups(q):
@@ -379,7 +386,6 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
     oof_base, oof_fin = out_of_fold(r_base), out_of_fold(r_fin)
     before = float(np.sqrt(np.sum(oof_base[:, :3] ** 2) / n)) * pos_scale
     after = float(np.sqrt(np.sum(oof_fin[:, :3] ** 2) / n)) * pos_scale
-    shrink = float(np.clip(1.0 - np.sum(oof_fin**2) / max(np.sum(oof_base**2), 1e-300), 0.0, 1.0)) if selected else 0.0
 
     floor = _noise_floor_repeats(data, groups)
     if floor is not None:
@@ -389,6 +395,8 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
         dof = max(n * m - len(base_cols), 1)
         noise_floor = float(np.sqrt(np.sum(rf**2) / n * (n * m) / dof)) * pos_scale
         noise_source = "fit residual with its degrees of freedom"
+
+    shrink = shrink_fraction(before, after, noise_floor) if selected else 0.0
 
     # Where: baseline out-of-fold residual against features; structure left after the selected model.
     loads, tips = gf.loads_and_tips(jnp.asarray(xs[folds]), qj, cj, model=model)
