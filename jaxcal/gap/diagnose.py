@@ -205,7 +205,7 @@ class _Linear:
 
     def evaluate(self, cols):
         cols = np.asarray(cols, int)
-        sse, sse_pos, held = 0.0, 0.0, []
+        sse, sse_pos, steps = 0.0, 0.0, []
         for b in range(self.k):
             train = self.valid_rows & (self.fold_rows != b)
             test = self.valid_rows & (self.fold_rows == b)
@@ -213,11 +213,11 @@ class _Linear:
             h = self.r[b] + self.J[b][:, cols] @ d
             sse += float(np.sum(h[test] ** 2))
             sse_pos += float(np.sum(h[test & self.pos_rows] ** 2))
-            held.append((test, h))
+            steps.append(d)
         full = np.flatnonzero(self.valid_rows)
         d = _lstsq_step(self.J[self.k], self.r[self.k], cols, full)
         rss = float(np.sum((self.r[self.k] + self.J[self.k][:, cols] @ d)[full] ** 2))
-        return sse, sse_pos, rss, held
+        return sse, sse_pos, rss, steps + [d]
 
 
 def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_effects: int = 3, effects=EFFECTS,
@@ -371,7 +371,13 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
 
     # How far: nonlinear refit of the selected model on every fold.
     t_fin = time.perf_counter()
-    xs_final, ok_final, steps_final = solve(xs, base_cols, comp_sigma) if selected else (xs, ok_base, 0)
+    if selected:  # start the nonlinear refit from the linearised joint fit of every fold
+        x_start = xs.copy()
+        for b, d in enumerate(lin.evaluate(base_cols)[3]):
+            x_start[b, base_cols] += d
+        xs_final, ok_final, steps_final = solve(x_start, base_cols, comp_sigma)
+    else:
+        xs_final, ok_final, steps_final = xs, ok_base, 0
     w_unit = jnp.asarray(valid[:, None] / comp_sigma[None, :])
     r_base = np.asarray(gf.residual_batch(jnp.asarray(xs), qj, yj, cj, w_unit, model=model))
     r_fin = np.asarray(gf.residual_batch(jnp.asarray(xs_final), qj, yj, cj, w_unit, model=model))
