@@ -9,6 +9,7 @@
 from jaxcal import (
            _setup,  # noqa: F401  (float64 + compilation cache before anything traces)
            ga,  # noqa: E402  (genetic algorithm)
+           gap,  # sim-to-real gap diagnosis
            measure,
            realdata,  # built-in real datasets (TALOS, UR10, TIAGo)
            robots,
@@ -21,6 +22,7 @@ from jaxcal.measure import make_device
 from jaxcal.robots.io import load_robot, save_robot
 
 __version__ = "0.1.0"
-__all__ = ["DataError", "Dataset", "FitResult", "Pose", "Robot", "forward", "ga", "identifiable", "identify", "make_device",
-           "load_robot", "measure", "perturb", "random_configurations", "realdata", "robots", "save_robot", "simulate",
+__all__ = ["DataError", "Dataset", "FitResult", "Pose", "Robot", "forward", "ga", "gap", "identifiable", "identify",
+           "make_device", "load_robot", "measure", "perturb", "random_configurations", "realdata", "robots", "save_robot",
+           "simulate",
            "uncertainty"]

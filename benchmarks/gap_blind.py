@@ -1,0 +1,322 @@
+"""Blind check of `jc.gap.diagnose` (issue 7): generate cases, diagnose them without the labels, score.
+
+    python benchmarks/gap_blind.py --cases 40 --folder /tmp/gap_blind [--seed 0]
+
+1. generate: each case draws a robot (built-in serial robots), a device, a noise level, 30-300
+   samples, covariates, and a hidden truth: no effect, one library effect at a random separable
+   joint with magnitude 1x-10x the noise RMS, or a decoy outside the library (third-harmonic joint
+   error, a local bump over the workspace, a quadratic cross-joint error; right answer
+   "unexplained"). Data go to cases/NNN.npz; labels to labels.json, written apart.
+2. diagnose: reads only the npz files, writes predictions.json.
+3. score: reads labels and predictions; confusion matrix, top-1 accuracy, right-joint rate,
+   false-alarm rate, mean shrink; results/gap_blind.json and a markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import sys
+import tempfile
+import time
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+import jaxcal as jc  # noqa: E402
+from jaxcal.gap.diagnose import shrink_fraction  # noqa: E402
+from jaxcal.gap.effects import GLOBAL_EFFECTS, JOINT_EFFECTS, NEEDS, gap_model  # noqa: E402
+from jaxcal.gap.fit import loads_and_tips  # noqa: E402
+from jaxcal.gap.simulate import add_noise, effect_vector, readings  # noqa: E402
+
+ROBOTS = ("mrr1", "stanford")
+DECOYS = ("harmonic3", "bump", "quadratic")
+
+
+def _write_json(path, obj):
+    fd, tmp = tempfile.mkstemp(dir=os.path.dirname(os.path.abspath(path)), suffix=".json")
+    with os.fdopen(fd, "w") as fh:
+        json.dump(obj, fh, indent=1)
+    os.replace(tmp, path)
+
+
+def separable_joints(robot, model, effect):
+    """Joints where an effect acts on the readings and the geometry cannot absorb it exactly."""
+    js = list(model.joints_with(effect))
+    if effect == "encoder_gain" and robot.gains is not None:
+        return []  # the transmission gains K are geometric parameters: a gain error is absorbed
+    if effect == "compliance":
+        q = jc.random_configurations(robot, 50, seed=1)
+        loads, _ = loads_and_tips(model.nominal(), q, np.zeros((50, 2 + robot.n_inputs)), model=model)
+        js = [j for j in js if np.std(np.asarray(loads)[:, j]) > 1e-3]
+    return js
+
+
+def _unit_effect(model, effect, joint, rng):
+    """Effect parameters {name: value} of unit size with a random direction."""
+    names = [n for n, e, j in zip(model.effect_names, model.effect_of, model.joint_of)
+             if e == effect and (joint is None or j == joint)]
+    if effect == "device_bias":
+        v = np.concatenate([rng.normal(0, 0.3, 3), [rng.choice([-1.0, 1.0])]])
+    else:
+        v = rng.normal(size=len(names))
+        v /= np.linalg.norm(v)
+    return dict(zip(names, v))
+
+
+def _decoy_readings(robot, model, x, q, cov, kind, rng):
+    """Readings with an error outside the effect library, unit size before scaling."""
+    y0 = readings(model, x, q, cov)
+    n = robot.n_inputs
+    if kind == "harmonic3":
+        j = int(rng.integers(n))
+        dq = np.zeros_like(q)
+        dq[:, j] = np.sin(3 * q[:, j] + rng.uniform(0, 2 * np.pi))
+        return y0, readings(model, x, q + 1e-3 * dq, cov), j
+    if kind == "quadratic":
+        j, k = rng.choice(n, 2, replace=False)
+        span = max(np.ptp(q[:, k]), 1e-9)
+        dq = np.zeros_like(q)
+        dq[:, j] = ((q[:, k] - q[:, k].mean()) / span) ** 2
+        return y0, readings(model, x, q + 1e-3 * dq, cov), int(j)
+    p = y0[:, :3, 3] if y0.ndim == 3 else y0
+    c = p[rng.integers(len(p))]
+    s = 0.3 * np.max(np.ptp(p, axis=0))
+    u = rng.normal(size=3)
+    bump = np.exp(-np.sum((p - c) ** 2, axis=1) / (2 * s**2))[:, None] * u / np.linalg.norm(u) * 1e-3
+    y1 = y0.copy()
+    if y1.ndim == 3:
+        y1[:, :3, 3] += bump
+    else:
+        y1 += bump
+    return y0, y1, -1
+
+
+def _position(y):
+    return y[:, :3, 3] if y.ndim == 3 else y
+
+
+def generate(folder, n_cases, seed):
+    os.makedirs(os.path.join(folder, "cases"), exist_ok=True)
+    rng = np.random.default_rng(seed)
+    labels = {}
+    for i in range(n_cases):
+        name = str(rng.choice(ROBOTS))
+        robot = jc.robots.get(name)
+        device = "pose" if (name == "mrr1" and rng.random() < 0.25) else "position"
+        model = gap_model(robot, jc.make_device(device))
+        n = int(rng.integers(30, 301))
+        sigma = float(rng.choice([1e-5, 3e-5, 1e-4]))
+        q = jc.random_configurations(robot, n, seed=int(rng.integers(1 << 30)))
+        cov = {}
+        if rng.random() < 0.6:
+            cov["time"] = np.sort(rng.uniform(0, 3600, n))
+        if rng.random() < 0.5:
+            cov["temperature"] = 20 + 3 * np.sin(np.linspace(0, rng.uniform(1, 4), n)) + rng.normal(0, 0.05, n)
+        if rng.random() < 0.5:
+            cov["direction"] = rng.choice([-1.0, 1.0], (n, robot.n_inputs))
+        u = rng.random()
+        kind = "none" if u < 0.15 else ("decoy" if u < 0.3 else "effect")
+        a = np.asarray(jc.perturb(robot, 1e-3, seed=int(rng.integers(1 << 30))))
+        d = np.zeros(model.device.n_params)
+        d[:3] = rng.normal(0, 0.05, 3)
+        d[3:6] = rng.normal(0, 0.05, 3)
+        x0 = np.concatenate([a, d, np.zeros(len(model.effect_names))])
+        magnitude = float(rng.uniform(1, 10))
+        target = magnitude * sigma * np.sqrt(3)  # RMS of the 3-D position displacement
+        label = {"robot": name, "device": device, "n": n, "noise": sigma, "kind": kind, "covariates": sorted(cov)}
+        if kind == "none":
+            y = readings(model, x0, q, cov)
+            label.update(effect="none", joints=[], magnitude=0.0)
+        elif kind == "decoy":
+            dk = str(rng.choice(DECOYS))
+            y0, y1, j = _decoy_readings(robot, model, x0, q, cov, dk, rng)
+            disp = _position(y1) - _position(y0)
+            k = target / max(np.sqrt(np.mean(np.sum(disp**2, axis=1))), 1e-300)
+            y = y0.copy()
+            if y.ndim == 3:
+                y[:, :3, 3] += k * disp
+            else:
+                y = y0 + k * disp
+            label.update(effect="unexplained", decoy=dk, joints=[], magnitude=magnitude)
+        else:
+            effects = [e for e in JOINT_EFFECTS if separable_joints(robot, model, e)] + list(GLOBAL_EFFECTS)
+            eff = str(rng.choice(effects))
+            need = NEEDS.get(eff)
+            if need == "time" or (need == "thermal" and "temperature" not in cov and "time" not in cov):
+                cov.setdefault("time", np.sort(rng.uniform(0, 3600, n)))
+            if need == "direction":
+                cov.setdefault("direction", rng.choice([-1.0, 1.0], (n, robot.n_inputs)))
+            label["covariates"] = sorted(cov)
+            joint = int(rng.choice(separable_joints(robot, model, eff))) if eff in JOINT_EFFECTS else None
+            unit = _unit_effect(model, eff, joint, rng)
+            y0 = readings(model, x0, q, cov)
+            x1 = x0.copy()
+            x1[model.n_geometry:] = effect_vector(model, unit)
+            disp = _position(readings(model, x1, q, cov)) - _position(y0)
+            k = target / max(np.sqrt(np.mean(np.sum(disp**2, axis=1))), 1e-300)
+            x1[model.n_geometry:] *= k
+            y = readings(model, x1, q, cov)
+            label.update(effect=eff, joints=[] if joint is None else [robot.joint_names[joint]], magnitude=magnitude,
+                         parameters={kk: float(v * k) for kk, v in unit.items()})
+        y = add_noise(device, y, sigma, sigma / 0.5, seed=int(rng.integers(1 << 30)))  # 1e-5 m ~ 2e-5 rad
+        np.savez(os.path.join(folder, "cases", f"{i:04d}.npz"), q=q, y=y, robot=name, device=device,
+                 **{f"cov_{k}": v for k, v in cov.items()})
+        labels[f"{i:04d}"] = label
+    _write_json(os.path.join(folder, "labels.json"), labels)
+
+
+def _shard(folder, shard):
+    """Case files of shard "i/n": cases sorted by (robot, device, padded size) so a process compiles few shapes."""
+    from jaxcal.gap.fit import padded_size
+
+    files = sorted(os.listdir(os.path.join(folder, "cases")))
+    if shard is None:
+        return files
+    i, n = (int(v) for v in shard.split("/"))
+    keyed = []
+    for fn in files:
+        z = np.load(os.path.join(folder, "cases", fn))
+        keyed.append((str(z["robot"]), str(z["device"]), padded_size(len(z["q"])), fn))
+    keyed.sort()
+    chunk = int(np.ceil(len(keyed) / n))
+    return [k[-1] for k in keyed[i * chunk:(i + 1) * chunk]]
+
+
+def diagnose_all(folder, limit_s=None, shard=None, out_path=None):
+    """Diagnose the cases (reading only the case files); the predictions file is rewritten after each case."""
+    out_path = out_path or os.path.join(folder, "predictions.json")
+    preds = json.load(open(out_path)) if os.path.exists(out_path) else {}
+    t_start = time.time()
+    for fn in _shard(folder, shard):
+        key = fn[:-4]
+        if key in preds:
+            continue
+        if limit_s is not None and time.time() - t_start > limit_s:
+            break
+        z = np.load(os.path.join(folder, "cases", fn))
+        robot = jc.robots.get(str(z["robot"]))
+        cov = {k[4:]: z[k] for k in z.files if k.startswith("cov_")}
+        data = jc.Dataset(q=z["q"], y=z["y"], device=str(z["device"]), covariates=cov)
+        t = time.perf_counter()
+        d = jc.gap.diagnose(robot, data)
+        wall = time.perf_counter() - t
+        preds[key] = {"verdict": d.verdict, "joints": list(d.joints), "shrink": d.shrink, "before": d.heldout_rms_before,
+                      "after": d.heldout_rms_after, "floor": d.noise_floor, "structure_p": d.structure_p,
+                      "selected": [[e, list(j)] for e, j in d.selected], "wall_s": wall,
+                      "parameters": d.parameters}
+        _write_json(out_path, preds)
+        print(f"{key} {d.robot_name:<9} {d.verdict:<13} {','.join(d.joints):<8} {wall:6.1f} s", flush=True)
+    return preds
+
+
+def score(folder):
+    labels = json.load(open(os.path.join(folder, "labels.json")))
+    preds = json.load(open(os.path.join(folder, "predictions.json")))
+    keys = sorted(k for k in preds if k in labels)
+    conf = collections.defaultdict(collections.Counter)
+    strong = right = 0
+    joint_ok = joint_n = 0
+    fa = fa_n = 0
+    shrinks = []
+    per_kind = collections.defaultdict(lambda: [0, 0])
+    for k in keys:
+        lab, pr = labels[k], preds[k]
+        conf[lab["effect"]][pr["verdict"]] += 1
+        ok = pr["verdict"] == lab["effect"]
+        per_kind[lab["kind"]][0] += ok
+        per_kind[lab["kind"]][1] += 1
+        if lab["kind"] == "none":
+            fa_n += 1
+            fa += pr["verdict"] != "none"
+        if lab["kind"] == "effect" and lab["magnitude"] >= 5 and lab["n"] >= 100:
+            strong += 1
+            right += ok
+        if lab["kind"] == "effect" and ok:  # shrink recomputed from the recorded RMS values (position, mm)
+            shrinks.append(shrink_fraction(pr["before"], pr["after"], pr["floor"]))
+            if lab["joints"]:
+                joint_n += 1
+                joint_ok += set(lab["joints"]) <= set(pr["joints"])
+    effect_keys = [k for k in keys if labels[k]["kind"] == "effect"]
+    res = {
+        "cases": len(keys),
+        "top1_strong": right / strong if strong else None, "n_strong": strong,
+        "top1_all_effects": (sum(preds[k]["verdict"] == labels[k]["effect"] for k in effect_keys) / len(effect_keys)
+                             if effect_keys else None),
+        "right_joint": joint_ok / joint_n if joint_n else None, "n_joint": joint_n,
+        "false_alarm": fa / fa_n if fa_n else None, "n_none": fa_n,
+        "decoy_unexplained": (per_kind["decoy"][0] / per_kind["decoy"][1]) if per_kind["decoy"][1] else None,
+        "n_decoy": per_kind["decoy"][1],
+        "mean_shrink_right": float(np.mean(shrinks)) if shrinks else None,
+        "median_wall_s": float(np.median([preds[k]["wall_s"] for k in keys])) if keys else None,
+        "confusion": {t: dict(c) for t, c in sorted(conf.items())},
+        "by_magnitude": _by_magnitude(labels, preds, effect_keys),
+    }
+    return res
+
+
+def _by_magnitude(labels, preds, keys):
+    out = {}
+    for lo, hi in ((1, 3), (3, 5), (5, 10.01)):
+        for nlo, nhi in ((30, 100), (100, 301)):
+            ks = [k for k in keys if lo <= labels[k]["magnitude"] < hi and nlo <= labels[k]["n"] < nhi]
+            if ks:
+                out[f"{lo}-{int(hi)}x, N {nlo}-{nhi - 1}"] = [sum(preds[k]["verdict"] == labels[k]["effect"] for k in ks), len(ks)]
+    return out
+
+
+def table(res) -> str:
+    pct = (lambda v: "n/a" if v is None else f"{100 * v:.0f} %")
+    lines = ["| metric | value | target |", "|---|---|---|",
+             f"| cases scored | {res['cases']} | |",
+             f"| top-1, effects >= 5x noise and >= 100 samples | {pct(res['top1_strong'])} (n = {res['n_strong']}) | >= 90 % |",
+             f"| top-1, all effect cases | {pct(res['top1_all_effects'])} | |",
+             f"| right joint (verdict right, joint effects) | {pct(res['right_joint'])} (n = {res['n_joint']}) | >= 80 % |",
+             f"| false alarms on no-effect cases | {pct(res['false_alarm'])} (n = {res['n_none']}) | <= 5 % |",
+             f"| decoys answered \"unexplained\" | {pct(res['decoy_unexplained'])} (n = {res['n_decoy']}) | |",
+             f"| mean shrink when the verdict is right | {pct(res['mean_shrink_right'])} | >= 80 % |",
+             f"| median diagnose wall time | {res['median_wall_s']:.1f} s | |" if res["median_wall_s"] else ""]
+    lines += ["", "Confusion (rows: truth, columns: verdict):", ""]
+    cols = sorted({v for c in res["confusion"].values() for v in c})
+    lines.append("| truth \\ verdict | " + " | ".join(cols) + " |")
+    lines.append("|---" * (len(cols) + 1) + "|")
+    for t, c in res["confusion"].items():
+        lines.append(f"| {t} | " + " | ".join(str(c.get(v, "")) for v in cols) + " |")
+    lines += ["", "Top-1 by magnitude and sample count (right / cases): "
+              + "; ".join(f"{k}: {v[0]}/{v[1]}" for k, v in res["by_magnitude"].items())]
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", type=int, default=40)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--folder", default="/tmp/gap_blind")
+    ap.add_argument("--limit-s", type=float, default=None, help="stop diagnosing after this many seconds (score what is done)")
+    ap.add_argument("--stage", choices=("all", "generate", "diagnose", "score"), default="all")
+    ap.add_argument("--shard", default=None, help="diagnose only shard i/n (parallel processes)")
+    ap.add_argument("--predictions", default=None, help="predictions file (default FOLDER/predictions.json)")
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "gap_blind"))
+    args = ap.parse_args(argv)
+    if args.stage in ("all", "generate") and not os.path.exists(os.path.join(args.folder, "labels.json")):
+        generate(args.folder, args.cases, args.seed)
+    if args.stage in ("all", "diagnose"):
+        diagnose_all(args.folder, args.limit_s, args.shard, args.predictions)
+    if args.stage in ("all", "score"):
+        res = score(args.folder)
+        res["settings"] = {"cases_generated": args.cases, "seed": args.seed}
+        os.makedirs(os.path.dirname(args.out), exist_ok=True)
+        _write_json(args.out + ".json", res)
+        md = table(res)
+        fd, tmp = tempfile.mkstemp(dir=os.path.dirname(args.out), suffix=".md")
+        with os.fdopen(fd, "w") as fh:
+            fh.write(md + "\n")
+        os.replace(tmp, args.out + ".md")
+        print(md)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
