@@ -69,7 +69,7 @@ def _input_errors():
 
 def _fail(exc) -> int:
     msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-    _console().print(f"[bold red]error:[/] {msg}", highlight=False, markup=True)
+    _console().print(f"[bold red]error:[/] {msg}", highlight=False, markup=True, soft_wrap=True)  # one line: paths stay whole
     return EXIT_BAD_INPUT
 
 
