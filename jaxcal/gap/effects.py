@@ -55,6 +55,8 @@ G_HAT = np.array([0.0, 0.0, -1.0])  # gravity direction in the robot base frame 
 def _is_revolute(body) -> bool:
     if body.convention == "pry":
         return body.kind in ("revolute", "cylindrical", "universal", "spherical")
+    if body.convention == "urdf":  # kind = (joint type, axis); continuous joints load as "revolute"
+        return body.kind[0] == "revolute"
     return int(body.kind) == 0
 
 
@@ -201,10 +203,11 @@ def joint_axes(model: GapModel, F):
     pts, dirs = [], []
     for b in model.joint_body:
         body = robot.bodies[b]
-        dirs.append(F.R[b][:, 2])
+        axis = np.asarray(body.kind[1], float) if body.convention == "urdf" else np.array([0.0, 0.0, 1.0])
+        dirs.append(F.R[b] @ axis)  # URDF joints turn about their own axis, the others about z
         if body.convention == "pry":  # the module rotates about its parent's origin (seed 000 eq 3.45)
             pts.append(root if body.parent < 0 else F.p[body.parent])
-        else:  # MDH / MCPC: the joint axis passes through the body's own origin
+        else:  # MDH / MCPC / URDF: the joint axis passes through the body's own origin
             pts.append(F.p[b])
     return jnp.stack(pts), jnp.stack(dirs)
 
