@@ -22,6 +22,14 @@ def median_time(fn, repeat: int = 5, number: int = 1) -> float:
     return statistics.median(times)
 
 
+def first_and_median(fn, repeat: int = 3):
+    """(result, seconds of the first call (compile included), median seconds of `repeat` more calls)."""
+    t = time.perf_counter()
+    out = fn()
+    first = time.perf_counter() - t
+    return out, first, median_time(fn, repeat=repeat)
+
+
 def _rx(t):
     c, s = np.cos(t), np.sin(t)
     o, z = np.ones_like(t), np.zeros_like(t)

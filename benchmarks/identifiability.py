@@ -16,11 +16,11 @@ import argparse
 import json
 import os
 import statistics
-import time
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
+from _common import first_and_median  # noqa: E402
 
 import jaxcal as jc  # noqa: E402
 from jaxcal.fit.design import random_design_conditions, select_configurations  # noqa: E402
@@ -31,24 +31,12 @@ from jaxcal.report import write_text_atomic  # noqa: E402
 TABLE2 = dict(zip(METHODS, (31, 34, 24, 21, 27, 24, 26, 24, 25)))
 
 
-def _timed(fn, repeat=3):
-    t = time.perf_counter()
-    out = fn()
-    first = time.perf_counter() - t
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return out, first, statistics.median(times)
-
-
 def identifiability_table(n_configs=40):
     rows = []
     for robot_name, methods in (("stanford", METHODS), ("mrr1", ("position", "location"))):
         rb = jc.robots.get(robot_name)
         for m in methods:
-            r, first, med = _timed(lambda: jc.identifiable(rb, m, n_configs=n_configs, seed=0))
+            r, first, med = first_and_median(lambda: jc.identifiable(rb, m, n_configs=n_configs, seed=0))
             paper = TABLE2.get(m) if robot_name == "stanford" else None
             rows.append({"robot": robot_name, "method": m, "count": r.count, "paper": paper,
                          "n_params": rb.n_params, "condition": r.condition, **r.indices, "first_s": first, "median_s": med})
@@ -60,7 +48,7 @@ def design_study():
     pool = jc.random_configurations(rb, 400, seed=0)
     out = {}
     for index in ("condition", "menq_borm", "min_singular", "noise_amplification"):
-        d, first, med = _timed(lambda: select_configurations(rb, "position", n=15, pool=pool, index=index), repeat=1)
+        d, first, med = first_and_median(lambda: select_configurations(rb, "position", n=15, pool=pool, index=index), repeat=1)
         out[index] = {"condition": d.condition, **{f"chosen_{k}": v for k, v in d.indices.items()},
                       "exchanges": d.exchanges, "first_s": first, "median_s": med}
     rand = random_design_conditions(rb, "position", n=15, pool=pool, draws=50, seed=0)
@@ -84,7 +72,7 @@ def gecaro_vs_lm(scales=(1e-3, 1e-2, 5e-2, 1e-1, 2e-1, 3e-1), seeds=range(5), n_
             a_true[base] += (scale * np.where(gain, 4.0, 1.0))[base] * rng.uniform(-1, 1, len(base))
             pts = generate_points(rb, "position", n_points, seed=100 + seed, a=a_true)
             for solver in ("gecaro", "lm"):
-                cal, first, med = _timed(lambda: calibrate(rb, pts, solver=solver, max_iter=50), repeat=2)
+                cal, first, med = first_and_median(lambda: calibrate(rb, pts, solver=solver, max_iter=50), repeat=2)
                 err = float(np.max(np.abs(cal.a - a_true)))
                 out.append({"scale": scale, "seed": seed, "solver": solver, "iterations": cal.iterations,
                             "rms_before": float(cal.rms[0]), "rms_after": float(cal.rms[-1]), "param_error": err,

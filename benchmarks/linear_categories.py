@@ -12,8 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
-import time
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
@@ -22,6 +20,7 @@ import matplotlib  # noqa: E402
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from _common import first_and_median  # noqa: E402
 
 import jaxcal as jc  # noqa: E402
 from jaxcal.fit.linear import CATEGORIES, linear_calibrate  # noqa: E402
@@ -43,18 +42,6 @@ def _summary(r) -> dict:
             "rank": r.rank.tolist()}
 
 
-def _timed(fn, repeat=5):
-    t = time.perf_counter()
-    out = fn()
-    first = time.perf_counter() - t
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return out, first, statistics.median(times)
-
-
 def study(n_poses: int = 8, seeds=(0, 1, 2, 3, 4)):
     rb = jc.robots.get("mrr1")
     home = np.asarray(rb.home)[None]
@@ -62,7 +49,7 @@ def study(n_poses: int = 8, seeds=(0, 1, 2, 3, 4)):
     for axes in ("static", "moving"):
         for upd in ("pry", "skew"):
             fn = lambda: linear_calibrate(rb, home, None, P_ACTUAL[None], "position", update=upd, axes=axes, tol=1e-6)  # noqa: E731
-            r, first, med = _timed(fn)
+            r, first, med = first_and_median(fn, repeat=5)
             out["single_pose_position"][f"{axes}/{upd}"] = _summary(r)
             out["timing"][f"single_pose_position/{axes}/{upd}"] = {"first_s": first, "median_s": med, "iterations": r.iterations}
     for cat in CATEGORIES:
@@ -82,7 +69,7 @@ def study(n_poses: int = 8, seeds=(0, 1, 2, 3, 4)):
     Q = jc.random_configurations(rb, n_poses, seed=10)
     pose = jc.forward(rb, a_true, Q)
     fn = lambda: linear_calibrate(rb, Q, np.asarray(pose.R), np.asarray(pose.p), "pose", category=3, tol=1e-6)  # noqa: E731
-    r, first, med = _timed(fn)
+    r, first, med = first_and_median(fn, repeat=5)
     out["timing"][f"many_poses_full/cat3/{n_poses}"] = {"first_s": first, "median_s": med, "iterations": r.iterations}
     return out
 
