@@ -156,15 +156,3 @@ def test_delta_simulation_3_theodolite_with_noise():
     floor = np.sqrt(250 - len(fit.estimated)) * np.sqrt(1.28e-9)
     assert abs(float(fit.a[rb.index("j26.d1")] - a_true[rb.index("j26.d1")])) < 6e-3
     assert after < 1.5 * floor and before > 20 * floor
-
-
-@pytest.mark.slow  # compiles the generic LM closure: ~60 s cold on this machine
-def test_kiwibot_closes_about_a_fixed_centre():
-    """The Kiwibot is a spherical positioner: the nacelle frame 10 turns about the base centre."""
-    rb = jc.robots.get("kiwibot")
-    q = jnp.asarray(jc.random_configurations(rb, 16, seed=3))
-    assert bool(jnp.all(jc.closure.closed(rb, rb.nominal, q)))
-    pose = jc.forward(rb, rb.nominal, q)
-    assert float(jnp.max(jnp.abs(pose.p))) < 1e-12
-    angles = jnp.linalg.norm(jax.vmap(jc.kin.rotations.log_so3)(pose.R), axis=-1)
-    assert float(jnp.min(angles)) > 0.05  # it does turn

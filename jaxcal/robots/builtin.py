@@ -146,6 +146,9 @@ def delta():
 @functools.cache
 def kiwibot():
     """The Kiwibot of seed 004 Table 4.4: 16 MCPC bodies, actuators 2-4, two spherical closures
-    (15-13, 16-14) solved by the generic LM closure from the closed home setting, tool = nacelle
-    frame 10; 39 free parameters as marked in the table."""
-    return load_robot(_data_file("kiwibot.yaml")).with_free(_free_list("kiwibot.yaml"))
+    (15-13, 16-14), tool = nacelle frame 10; 39 free parameters as marked in the table. Each sample
+    closes by the generic closure (Newton/LM hybrid) from the nominal homokinetic (mirror-mode)
+    solution (`jaxcal.closure.kiwibot.closure_start`)."""
+    from jaxcal.closure.kiwibot import with_kiwibot_closure
+
+    return with_kiwibot_closure(load_robot(_data_file("kiwibot.yaml"))).with_free(_free_list("kiwibot.yaml"))
