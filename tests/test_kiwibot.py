@@ -106,9 +106,9 @@ def test_closed_model_is_the_homokinetic_solution(rb, settings):
     R, p = _direct(settings)
     assert float(jnp.max(jnp.abs(p10 - p))) < 1e-12 and float(jnp.max(jnp.abs(R10 - R))) < 1e-12
     theta7 = sol.theta_free[:, 1]
-    assert float(jnp.min(jnp.abs(jnp.sin(theta7)))) > 0.1  # measured: |theta_7| in [0.31, 2.3] rad
+    assert float(jnp.min(jnp.abs(jnp.sin(theta7)))) > 0.1  # measured: |theta_7| in [0.30, 2.25] rad
     _, V = _jacobians(rb, rb.nominal, settings, sol.theta_free)
-    assert float(jnp.max(jnp.linalg.cond(V))) < 100  # measured: < 50 on the grid, < 41 over 2000 random settings
+    assert float(jnp.max(jnp.linalg.cond(V))) < 100  # measured: <= 38 on the 160-setting grid, <= 41 over 2000 random settings
     perturbed = core.solve(rb, kb.thesis_perturbed(rb), settings)
     assert bool(jnp.all(perturbed.ok)) and float(jnp.max(perturbed.residual_norm)) < 1e-10
 
@@ -116,7 +116,7 @@ def test_closed_model_is_the_homokinetic_solution(rb, settings):
 def test_jacfwd_through_closure_matches_central_differences(rb, settings):
     """d(nacelle pose)/d(free parameters) by jacfwd of `jc.forward` (implicit function theorem through
     the closure) against central differences (h = 1e-6) of the closed tree at the perturbed geometry:
-    relative error measured ~1e-9, asserted < 1e-7. The full-pose rows have rank 32 of the 39 free
+    relative error measured 4.5e-10 (4.3e-8 at h = 1e-5), asserted < 1e-7. The full-pose rows have rank 32 of the 39 free
     columns, the orientation rows rank 30 (Table 4.5: 7 parameters stay at nominal in every run)."""
     a = kb.thesis_perturbed(rb)
     free = np.flatnonzero(rb.free_mask)
@@ -161,7 +161,7 @@ def _study(rb, device, noise=None):
 UNSEEN = {"j9.a1", "j9.a2", "j9.d2", "j13.a1", "j14.a1", "j15.a1", "j16.a1"}
 
 
-@pytest.mark.slow  # ~60 s cold (compiles jacfwd through the closure), ~30 s with the compilation cache
+@pytest.mark.slow  # compiles jacfwd through the closure: ~40 s with the compilation cache, longer cold
 def test_kiwibot_simulation_1_full_pose(rb):
     """Table 4.5 simulation 1: the 32 identifiable parameters are recovered exactly and the other 7
     stay at nominal, as in the thesis. Measured: 0.0289 -> 1.3e-14 (thesis 1.54e-2 -> 7.54e-10)."""

@@ -37,7 +37,7 @@ ARM = 0.6  # m, actuated (rows 5, 13, 14) and passive (rows 9, 15, 16) arm lengt
 PSI = (0.0, 2.0 * np.pi / 3.0, -2.0 * np.pi / 3.0)  # azimuth of actuators 2, 3, 4 (Table 4.4 a2)
 HOME_STRUT = 2.0 * ARM * np.sin(0.5)  # |p_10| at the home setting theta = (0.5, 0.5, 0.5)
 # Strut length of the simulation grid: at 0.7 m the whole hemisphere of pointing directions is reachable
-# and cond(dv/dtheta) stays below ~50; at the home strut (0.575 m) it passes 300 beyond 75 degrees of tilt.
+# and cond(dv/dtheta) stays below ~50; at the home strut (0.575 m) it reaches ~400 at 80 degrees of tilt.
 STUDY_STRUT = 0.7
 FREE = (6, 7, 8, 9, 11, 12)  # free joints of the Table 4.4 closure, in the order of theta_free
 
