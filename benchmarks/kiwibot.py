@@ -1,4 +1,4 @@
-"""Kiwibot simulations 1-3 of seed 004 §4.4 (Table 4.5) through the closed Table 4.4 model.
+"""Kiwibot simulations 1-3 of seed 004 §4.3 (Table 4.5) through the closed Table 4.4 model.
 
 The true ("perturbed") model is the thesis' own: Table 4.5 column 3 minus column 2 added to our
 nominal (Table 4.4). 160 actuator settings whose nacelle axes spread evenly over the hemisphere
@@ -33,7 +33,7 @@ from jaxcal.closure import kiwibot as kb  # noqa: E402
 from jaxcal.closure.kiwibot import TABLE_4_5, THESIS_NORMS, thesis_perturbed  # noqa: E402
 from jaxcal.fit.identify import residual_weights, residuals  # noqa: E402
 
-NOISE_SIM3 = {"orientation": float(np.sqrt(1.28e-9)), "actuator": float(np.sqrt(1.31e-9))}  # seed 004 §4.4
+NOISE_SIM3 = {"orientation": float(np.sqrt(1.28e-9)), "actuator": float(np.sqrt(1.31e-9))}  # seed 004 §4.3
 # stay at nominal in all three of the thesis' simulations (Table 4.5: identified - perturbed = -perturbation)
 UNSEEN = ("j9.a1", "j9.a2", "j9.d2", "j13.a1", "j14.a1", "j15.a1", "j16.a1")
 STUDIES = {"sim1": ("pose", None), "sim2": ("orientation", None), "sim3": ("orientation", NOISE_SIM3)}

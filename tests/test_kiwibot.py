@@ -1,4 +1,4 @@
-"""The Kiwibot (seed 004 §1.2, §4.4, Tables 4.4-4.5): homokinetic nominal solutions, the closed
+"""The Kiwibot (seed 004 ch. 1, §4.3, Tables 4.4-4.5): homokinetic nominal solutions, the closed
 Table 4.4 model in its mirror assembly mode, derivatives through the closure, and simulations 1-3."""
 
 import functools
@@ -138,7 +138,7 @@ def test_jacfwd_through_closure_matches_central_differences(rb, settings):
 
 
 def _study(rb, device, noise=None):
-    """Simulations of seed 004 §4.4: thesis' perturbed model, the 160-setting hemisphere grid,
+    """Simulations of seed 004 §4.3: thesis' perturbed model, the 160-setting hemisphere grid,
     device pose known; (fit, a_true, norm before, norm after) with unweighted (m, rad) residuals."""
     q, _ = kb.hemisphere_grid()
     a_true = kb.thesis_perturbed(rb)

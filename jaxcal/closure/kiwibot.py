@@ -1,4 +1,4 @@
-"""The Kiwibot's nominal geometry (seed 004 §1.2, §4.1, §4.4, Table 4.4): homokinetic direct and
+"""The Kiwibot's nominal geometry (seed 004 ch. 1, §4.2, §4.3, Table 4.4): homokinetic direct and
 inverse solutions, and the closure start they give the Table 4.4 model.
 
 The Kiwibot is Hunt's constant-velocity coupling made into a robot: the upper half (nacelle and
@@ -11,7 +11,7 @@ joint B_i to nacelle joint N_i = M B_i + 2 d n. The nacelle frame 10 of Table 4.
     p_10 = 2 d n,    R_10 = -M = 2 n n^T - I   (a half turn about n),
 
 and the nacelle axis z_10 = 2 (n . z) n - z turns twice as far as the plane: the two rotational
-freedoms and the "plunging" freedom (strut length |p_10| = 2 d) of §1.2.
+freedoms and the "plunging" freedom (strut length |p_10| = 2 d) of seed 004 ch. 1.
 
 Assembly mode. The tree of Table 4.4 also closes with each passive arm folded back onto its actuated
 arm and the nacelle inside the base (p_10 = 0 for every actuator setting). There the simulated ball
@@ -98,7 +98,7 @@ def inverse(pointing, strut=HOME_STRUT):
 
 def hemisphere_grid(n: int = 160, max_tilt: float = np.pi / 2, strut: float = STUDY_STRUT):
     """n actuator settings whose nacelle axes spread evenly (Fibonacci spiral) over the cap of
-    pointing directions within max_tilt of vertical, at a constant strut length (seed 004 §4.4: "160
+    pointing directions within max_tilt of vertical, at a constant strut length (seed 004 §4.3: "160
     positions approximately spanning a hemisphere"). Returns (theta (n, 3), pointing (n, 3))."""
     k = np.arange(n) + 0.5
     cos_tilt = 1.0 - (1.0 - np.cos(max_tilt)) * k / n
@@ -130,7 +130,7 @@ def closure_start(a, qj):
     """theta_free (joints 6 7 8 9 11 12) of the nominal mirror-mode assembly for actuator joint values
     qj; `a` is unused (a start only needs to lie in the right basin)."""
     del a
-    theta = jnp.asarray(qj, dtype=jnp.float64)[:3]
+    theta = jnp.asarray(qj, dtype=jnp.float64)
     R10, p10 = direct(theta)
     E = elbows(theta)
     # passive arm 9: from ball centre E_1 to nacelle joint N_1 = p10 - R10 (BASE_RADIUS, 0, 0) along -z_8
@@ -197,7 +197,7 @@ TABLE_4_5 = [
     ("j16.a2", 0.0, -0.00040755, 3.4e-8, 6.1e-5, -4.7e-5),
     ("j16.d1", -0.6, -0.60004, None, 4.8e-5, 4.2e-5),  # sim 1 entry lost in the OCR
 ]
-# Table 4.5 text (§4.4): residual norm before -> after of simulations 1-3.
+# Table 4.5 text (§4.3): residual norm before -> after of simulations 1-3.
 THESIS_NORMS = {"sim1": (1.54e-2, 7.54e-10), "sim2": (1.23e-2, 1.19e-8), "sim3": (0.0124, 8.66e-4)}
 
 
