@@ -49,7 +49,8 @@ class Dataset:
     """Joint values q (N, n_inputs), device readings y and optional covariates.
 
     `Dataset(q=Q, y=Y, device="position")`; for "pose" give y (N, 4, 4) or R= (N, 3, 3) and
-    p= (N, 3); for "multi_position" y (N, K, 3), K marker points per sample. Covariates (e.g. "time", "temperature", "direction") are arrays of length N.
+    p= (N, 3); for "multi_position" y (N, K, 3), K marker points per sample.
+    Covariates (e.g. "time", "temperature", "direction") are arrays of length N.
     """
 
     def __init__(self, q, y=None, device="position", covariates=None, R=None, p=None, joint_names=None, source=None):
