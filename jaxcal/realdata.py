@@ -439,14 +439,17 @@ def nested_cross_validate(real: RealData, variants, folds: int = 5, seed: int = 
     """k-fold cross-validation in which every choice among `variants` (parameter set, prior weight,
     orientation weight, compliance, robust loss) is made per outer fold by an inner cross-validation
     on that fold's training samples only (`choose_variant`); held-out figures as `cross_validate`,
-    with the variant chosen per fold and its inner score."""
+    with the variant chosen per fold and its inner score. One variant: its plain cross-validation."""
     variants = tuple(variants)
     n = len(real.data)
     per_fold, chosen = [], []
     t0 = time.perf_counter()
     for held in fold_indices(n, folds, seed):
         train = np.setdiff1d(np.arange(n), held)
-        best, scores = choose_variant(real, variants, train, inner_folds, seed + 1)
+        if len(variants) == 1:  # nothing to choose: plain k-fold cross-validation of that variant
+            best, scores = variants[0], [float("nan")]
+        else:
+            best, scores = choose_variant(real, variants, train, inner_folds, seed + 1)
         chosen.append({"variant": best.label, "inner_rms_mm": min(scores)})
         fit, used = fit_variant(real, best, train)
         per_fold.append((fit, used, train, held))

@@ -130,3 +130,14 @@ def test_variant_choice_never_sees_the_held_out_samples():
     assert best2 == best and np.allclose(scores, scores2, rtol=0, atol=1e-9)
     assert len(scores) == 3 and all(3.0 < s < 6.0 for s in scores)
     assert Variant("prior", 1.0, "noise ratio", True, True).label == "prior(mu=1)+w=noise+compliance+robust"
+
+
+@pytest.mark.slow
+def test_tiago_three_marker_fit_against_figaroh():
+    """TIAGo fitted on its three marker points (prior, mu by inner CV): point 1 held-out 4.20 mm, below
+    FIGAROH's 4.30; over all three points 4.40 mm, below the pose fit's 4.54 on that measure but 0.10
+    mm above 4.30 (docs/real-data.md: which definition FIGAROH's figure uses)."""
+    real = jc.realdata.load("tiago")
+    points = cross_validate(real, "prior+markers")
+    assert points["heldout_rms_per_point_mm"][0] < 4.30
+    assert points["heldout_rms_3points_mm"] < 4.54
