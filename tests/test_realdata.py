@@ -130,6 +130,10 @@ def test_variant_choice_never_sees_the_held_out_samples():
     assert best2 == best and np.allclose(scores, scores2, rtol=0, atol=1e-9)
     assert len(scores) == 3 and all(3.0 < s < 6.0 for s in scores)
     assert Variant("prior", 1.0, "noise ratio", True, True).label == "prior(mu=1)+w=noise+compliance+robust"
+    fit, _ = jc.realdata.fit_variant(real, Variant("full", orientation=0.3), train)  # a factor x the a-priori 1 mrad
+    assert fit.info["sigma_orientation"] == pytest.approx(0.3e-3) and Variant("full", orientation=0.3).label == "full+w=0.3"
+    noise = jc.realdata.noise_ratio_sigma(real, train)  # measured: ~2.5 mrad of orientation residual per mm of position
+    assert 1e-3 < noise < 5e-3
 
 
 @pytest.mark.slow
