@@ -24,7 +24,10 @@ offsets), "full" (every geometric parameter; `identify` estimates the base set),
 (every geometric parameter with the bias term mu ||(a - a0)/0.01||^2 of seed 004 eq 3.12; mu
 chosen by inner cross-validation on the training folds only), "prior+weights" (the same with the
 orientation weight of pose data chosen by the inner cross-validation too); "full+compliance" and
-"prior+compliance" add a joint compliance under gravity per revolute joint (`with_compliance`).
+"prior+compliance" add a joint compliance under gravity per revolute joint (`with_compliance`);
+"nested" picks one of `engineer_variants` (parameter set, mu, orientation weight, compliance, robust
+loss) per outer fold by inner cross-validation on its training folds (`nested_cross_validate`).
+A "+markers" suffix (TIAGo) fits the three marker points, each with its own offset (`with_markers`).
 """
 
 from __future__ import annotations
@@ -70,7 +73,7 @@ _SPECS = {
 SIGMA_ORIENTATION = {"talos": 1e-3, "ur10": 1e-3, "tiago": 1e-2}
 MU_GRID = tuple(10.0 ** k for k in range(-3, 3))
 SIGMA_FACTORS = (0.1, 0.3, 1.0)  # orientation weights tried by the inner CV of "prior" (pose data)
-SETTINGS = ("frames", "offsets", "full", "prior", "prior+weights", "full+compliance", "prior+compliance")
+SETTINGS = ("frames", "offsets", "full", "prior", "prior+weights", "full+compliance", "prior+compliance", "nested")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -165,6 +168,17 @@ def load(name: str) -> RealData:
     return RealData(name, robot, data, spec["description"], FIGAROH[name], extra)
 
 
+def with_markers(real: RealData) -> RealData:
+    """TIAGo read as its three distinct marker points, each with its own identified offset on the
+    tip link (device "multi_position", readings (N, 3, 3)) instead of one marker pose."""
+    if "points" not in real.extra:
+        raise ValueError(f"dataset {real.name!r} has one marker point; with_markers is for multi-point data (tiago)")
+    d = real.data
+    data = Dataset(q=d.q, y=real.extra["points"], device="multi_position", covariates=d.covariates,
+                   joint_names=d.joint_names, source=d.source)
+    return dataclasses.replace(real, data=data)
+
+
 @functools.cache
 def _compliant_robot(name: str):
     return with_gravity_compliance(robots.get(_SPECS[name]["robot"]))
@@ -223,11 +237,14 @@ def sample_errors(fit, real: RealData, idx):
 
 
 def point_errors(fit, real: RealData, idx) -> np.ndarray:
-    """TIAGo: 3-D error (mm) of each of the three marker points, (len(idx), 3), from the fitted
-    marker pose applied to the triad's mean shape."""
+    """TIAGo: 3-D error (mm) of each of the three marker points, (len(idx), 3): from the fitted
+    marker pose applied to the triad's mean shape (pose data), or of each fitted point (`with_markers`)."""
     idx = np.asarray(idx)
-    T = fit.predict(real.data.q[idx])
-    pred = np.einsum("nij,kj->nki", T[:, :3, :3], real.extra["triad"]) + T[:, None, :3, 3]
+    if real.data.device.kind == "multi_position":
+        pred = fit.predict(real.data.q[idx])
+    else:
+        T = fit.predict(real.data.q[idx])
+        pred = np.einsum("nij,kj->nki", T[:, :3, :3], real.extra["triad"]) + T[:, None, :3, 3]
     return np.linalg.norm(pred - real.extra["points"][idx], axis=-1) * 1e3
 
 
@@ -264,11 +281,15 @@ def cross_validate(real: RealData, setting: str, folds: int = 5, seed: int = 0, 
     over all held-out samples (position mm; orientation deg for pose data), the parameters estimated,
     the mu chosen per fold ("prior"), and the time (compile apart from run). `fit_options` go to
     `identify` (e.g. sigma_orientation)."""
+    if setting.endswith("+markers"):
+        real, setting = with_markers(real), setting.removesuffix("+markers")
+    if setting == "nested":
+        label = "nested" + ("+markers" if real.data.device.kind == "multi_position" else "")
+        return nested_cross_validate(real, engineer_variants(real), folds, seed, label=label)
     if setting.endswith("+compliance"):
         real, setting = with_compliance(real), setting.removesuffix("+compliance")
     n = len(real.data)
-    held_pos, held_ori, train_pos, train_ori, held_pts, n_est, mus = [], [], [], [], [], [], []
-    compile_s = run_s = 0.0
+    per_fold, mus = [], []
     t0 = time.perf_counter()
     for held in fold_indices(n, folds, seed):
         train = np.setdiff1d(np.arange(n), held)
@@ -277,7 +298,20 @@ def cross_validate(real: RealData, setting: str, folds: int = 5, seed: int = 0, 
             chosen = choose_prior(real, train, grid, weights=setting == "prior+weights", **fit_options)
             mu, options["sigma_orientation"] = chosen["mu"], chosen["sigma_orientation"]
             mus.append(chosen)
-        fit = fit_on(real, setting.removesuffix("+weights"), train, mu, **options)
+        per_fold.append((fit_on(real, setting.removesuffix("+weights"), train, mu, **options), real, train, held))
+    label = (setting + ("+compliance" if "compliance_of" in real.robot.extras else "")
+             + ("+markers" if real.data.device.kind == "multi_position" else ""))
+    out = _cv_summary(label, per_fold, time.perf_counter() - t0)
+    if mus:
+        out["chosen_per_fold"] = mus
+    return out
+
+
+def _cv_summary(label: str, per_fold, wall_s: float) -> dict:
+    """Held-out and train RMS of the fits of a cross-validation, per_fold = [(fit, dataset used, train, held)]."""
+    held_pos, held_ori, train_pos, train_ori, held_pts, n_est = [], [], [], [], [], []
+    compile_s = run_s = 0.0
+    for fit, real, train, held in per_fold:
         compile_s += fit.timings["compile_s"]
         run_s += fit.timings["run_s"]
         pe, oe = sample_errors(fit, real, held)
@@ -290,14 +324,135 @@ def cross_validate(real: RealData, setting: str, folds: int = 5, seed: int = 0, 
         if "points" in real.extra:
             held_pts.append(point_errors(fit, real, held))
         n_est.append(len(fit.estimated))
-    label = setting + ("+compliance" if "compliance_of" in real.robot.extras else "")
-    out = {"setting": label, "folds": folds, "samples": n, "parameters_estimated": int(np.median(n_est)),
+    folds = len(per_fold)
+    out = {"setting": label, "folds": folds, "samples": len(per_fold[0][1].data), "parameters_estimated": int(np.median(n_est)),
            "train_rms_mm": float(np.mean(train_pos)), "heldout_rms_mm": _rms(np.concatenate(held_pos)),
-           "compile_s": compile_s, "fit_run_s_per_fold": run_s / folds, "wall_s": time.perf_counter() - t0}
+           "compile_s": compile_s, "fit_run_s_per_fold": run_s / folds, "wall_s": wall_s}
     if held_ori:
         out.update(train_rms_deg=float(np.mean(train_ori)), heldout_rms_deg=_rms(np.concatenate(held_ori)))
     if held_pts:
-        out["heldout_rms_3points_mm"] = _rms(np.concatenate(held_pts))
-    if mus:
-        out["chosen_per_fold"] = mus
+        pts = np.concatenate(held_pts)
+        out["heldout_rms_3points_mm"] = _rms(pts)
+        out["heldout_rms_per_point_mm"] = [_rms(pts[:, k]) for k in range(pts.shape[1])]
+    return out
+
+
+# -- nested cross-validation over model variants ---------------------------------------------------
+HUBER_K = 1.5  # Huber threshold in robust scale units (1.4826 x median per-sample error)
+ROBUST_ITERATIONS = 2
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """One candidate model for `nested_cross_validate`.
+
+    setting: "frames", "offsets", "full" (base set by QR with column pivoting) or "prior" (every
+    parameter, bias mu). orientation (pose data): "a priori" (SIGMA_ORIENTATION), "noise ratio"
+    (`noise_ratio_sigma` on the training samples) or a number, the factor times the a-priori value.
+    compliance: joint compliance under gravity (`with_compliance`). robust: Huber re-weighting of
+    the samples (`fit_variant`)."""
+
+    setting: str = "prior"
+    mu: float | None = None
+    orientation: str | float = "a priori"
+    compliance: bool = False
+    robust: bool = False
+
+    @property
+    def label(self) -> str:
+        parts = [self.setting if self.mu is None else f"{self.setting}(mu={self.mu:g})"]
+        if self.orientation != "a priori":
+            parts.append("w=noise" if self.orientation == "noise ratio" else f"w={self.orientation:g}")
+        parts += ["compliance"] * self.compliance + ["robust"] * self.robust
+        return "+".join(parts)
+
+
+def noise_ratio_sigma(real: RealData, train, sigma_position: float = 1e-3) -> float:
+    """Orientation weight 1/sigma_o from the measured noise ratio: sigma_o = sigma_p x (RMS orientation
+    residual per component, rad) / (RMS position residual per component, m) of the full base-set fit on
+    the samples `train` (pose data only)."""
+    fit = fit_on(real, "full", train)
+    pe, oe = fit.errors(real.data.subset(np.asarray(train)))
+    return float(sigma_position * _rms(oe) / _rms(pe))
+
+
+def huber_weights(errors, k: float = HUBER_K) -> np.ndarray:
+    """Huber IRLS weights of per-sample errors: 1 within k robust scales (1.4826 x median), k s / e beyond."""
+    e = np.asarray(errors, float)
+    scale = 1.4826 * np.median(e)
+    return np.minimum(1.0, k * scale / np.maximum(e, 1e-300))
+
+
+def fit_variant(real: RealData, variant: Variant, train, noise_sigmas: dict | None = None):
+    """Fit one variant on the samples `train`: (fit, the dataset it was fitted on). Robust: fit,
+    re-weight the training samples by `huber_weights` of their weighted residual norm, refit
+    (ROBUST_ITERATIONS times). `noise_sigmas` caches `noise_ratio_sigma` of these samples per
+    compliance flag (it does not depend on the other choices)."""
+    train = np.asarray(train)
+    if variant.compliance:
+        real = with_compliance(real)
+    noise_sigmas = {} if noise_sigmas is None else noise_sigmas
+    options = {}
+    if real.data.device.kind == "pose":
+        so = variant.orientation
+        if so == "noise ratio" and variant.compliance not in noise_sigmas:
+            noise_sigmas[variant.compliance] = noise_ratio_sigma(real, train)
+        options["sigma_orientation"] = (noise_sigmas[variant.compliance] if so == "noise ratio"
+                                        else SIGMA_ORIENTATION[real.name] * (1.0 if so == "a priori" else float(so)))
+    fit = fit_on(real, variant.setting, train, variant.mu, **options)
+    for _ in range(ROBUST_ITERATIONS if variant.robust else 0):
+        pe, oe = fit.errors(real.data.subset(train))
+        norm = pe / 1e-3 if oe is None else np.hypot(pe / 1e-3, oe / options["sigma_orientation"])
+        weights = np.zeros(len(real.data))
+        weights[train] = huber_weights(norm)
+        fit = fit_on(real, variant.setting, train, variant.mu, sample_weights=weights, **options)
+    return fit, real
+
+
+def choose_variant(real: RealData, variants, train, inner_folds: int = 4, seed: int = 1) -> tuple[Variant, list[float]]:
+    """The variant with the smallest inner cross-validated position RMS on the samples `train` only
+    (the outer held-out fold is never seen), and every variant's inner score (mm)."""
+    train = np.asarray(train)
+    inner = fold_indices(len(train), inner_folds, seed)
+    noise_sigmas = [{} for _ in inner]
+    scores = []
+    for v in variants:
+        errs = []
+        for part, cache in zip(inner, noise_sigmas):
+            fit, used = fit_variant(real, v, np.setdiff1d(train, train[part]), cache)
+            errs.append(sample_errors(fit, used, train[part])[0])
+        scores.append(_rms(np.concatenate(errs)))
+    return variants[int(np.argmin(scores))], scores
+
+
+def engineer_variants(real: RealData, mu_grid=MU_GRID) -> tuple[Variant, ...]:
+    """The candidates a robotics engineer would try, fixed before any fit: base set (QR) or prior
+    over mu_grid; a-priori or noise-ratio orientation weight (pose data); with or without joint
+    compliance under gravity; with or without Huber re-weighting."""
+    models = [("full", None)] + [("prior", mu) for mu in mu_grid]
+    weights = ("a priori", "noise ratio") if real.data.device.kind == "pose" else ("a priori",)
+    return tuple(Variant(s, mu, w, c, r) for s, mu in models for w in weights for c in (False, True) for r in (False, True))
+
+
+def nested_cross_validate(real: RealData, variants, folds: int = 5, seed: int = 0, inner_folds: int = 4,
+                          label: str = "nested") -> dict:
+    """k-fold cross-validation in which every choice among `variants` (parameter set, prior weight,
+    orientation weight, compliance, robust loss) is made per outer fold by an inner cross-validation
+    on that fold's training samples only (`choose_variant`); held-out figures as `cross_validate`,
+    with the variant chosen per fold and its inner score. One variant: its plain cross-validation."""
+    variants = tuple(variants)
+    n = len(real.data)
+    per_fold, chosen = [], []
+    t0 = time.perf_counter()
+    for held in fold_indices(n, folds, seed):
+        train = np.setdiff1d(np.arange(n), held)
+        if len(variants) == 1:  # nothing to choose: plain k-fold cross-validation of that variant
+            best, scores = variants[0], [float("nan")]
+        else:
+            best, scores = choose_variant(real, variants, train, inner_folds, seed + 1)
+        chosen.append({"variant": best.label, "inner_rms_mm": min(scores)})
+        fit, used = fit_variant(real, best, train)
+        per_fold.append((fit, used, train, held))
+    out = _cv_summary(label, per_fold, time.perf_counter() - t0)
+    out.update(chosen_per_fold=chosen, candidates=len(variants))
     return out

@@ -1,11 +1,13 @@
 """Built-in real datasets (FIGAROH's TALOS, UR10, TIAGo files) and their cross-validated calibration."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 import jaxcal as jc
 from jaxcal.fit.data import DataError
-from jaxcal.realdata import cross_validate, fold_indices, read_columns, triad_frame
+from jaxcal.realdata import Variant, choose_variant, cross_validate, fold_indices, read_columns, triad_frame
 
 
 def test_datasets_load_with_their_urdf_chains():
@@ -89,3 +91,57 @@ def test_tiago_beats_figaroh_full_and_three_point_variant():
     prior = cross_validate(real, "prior")
     assert full["heldout_rms_mm"] < 6.03  # FIGAROH full parameters 6.03 (overfits)
     assert prior["heldout_rms_mm"] < 4.30  # FIGAROH's best, three marker points: 4.30
+
+
+def test_tiago_markers_are_fitted_as_three_points():
+    """TIAGo read as its three marker points (device multi_position, one offset per point): the
+    per-sample error is the RMS over the points, so the pooled held-out RMS equals the RMS over all
+    point errors; frames only, 3 folds: 4.6 mm (5 folds 4.63; FIGAROH frames only 4.54, point 1)."""
+    real = jc.realdata.with_markers(jc.realdata.load("tiago"))
+    assert real.data.device.kind == "multi_position" and real.data.y.shape == (34, 3, 3)
+    assert np.allclose(real.data.y, real.extra["points"])
+    frames = cross_validate(real, "frames", folds=3)
+    assert frames["setting"] == "frames+markers" and frames["parameters_estimated"] == 15
+    assert abs(frames["heldout_rms_mm"] - frames["heldout_rms_3points_mm"]) < 1e-9
+    per_point = np.array(frames["heldout_rms_per_point_mm"])
+    assert per_point.shape == (3,) and abs(np.sqrt(np.mean(per_point**2)) - frames["heldout_rms_mm"]) < 1e-9
+    assert 4.0 < frames["heldout_rms_mm"] < 5.5
+    with pytest.raises(ValueError, match="one marker point"):
+        jc.realdata.with_markers(jc.realdata.load("talos"))
+
+
+def test_huber_weights_down_weight_only_outlying_samples():
+    w = jc.realdata.huber_weights([1.0, 1.0, 1.0, 1.0, 10.0])
+    assert np.allclose(w[:4], 1.0) and np.isclose(w[4], 1.5 * 1.4826 / 10.0)
+
+
+def test_variant_choice_never_sees_the_held_out_samples():
+    """Nested CV: the inner scores of every variant are computed from the training samples only, so
+    corrupting the held-out samples' readings by 1 m leaves them unchanged to 1e-9 mm."""
+    real = jc.realdata.load("ur10")
+    held = fold_indices(23, 5, seed=0)[0]
+    train = np.setdiff1d(np.arange(23), held)
+    variants = (Variant("full"), Variant("prior", 1.0, "noise ratio"), Variant("full", robust=True))
+    best, scores = choose_variant(real, variants, train)
+    y = real.data.y.copy()
+    y[held, :3, 3] += 1.0
+    corrupted = dataclasses.replace(real, data=jc.Dataset(q=real.data.q, y=y, device=real.data.device))
+    best2, scores2 = choose_variant(corrupted, variants, train)
+    assert best2 == best and np.allclose(scores, scores2, rtol=0, atol=1e-9)
+    assert len(scores) == 3 and all(3.0 < s < 6.0 for s in scores)
+    assert Variant("prior", 1.0, "noise ratio", True, True).label == "prior(mu=1)+w=noise+compliance+robust"
+    fit, _ = jc.realdata.fit_variant(real, Variant("full", orientation=0.3), train)  # a factor x the a-priori 1 mrad
+    assert fit.info["sigma_orientation"] == pytest.approx(0.3e-3) and Variant("full", orientation=0.3).label == "full+w=0.3"
+    noise = jc.realdata.noise_ratio_sigma(real, train)  # measured: ~2.5 mrad of orientation residual per mm of position
+    assert 1e-3 < noise < 5e-3
+
+
+@pytest.mark.slow
+def test_tiago_three_marker_fit_against_figaroh():
+    """TIAGo fitted on its three marker points (prior, mu by inner CV): point 1 held-out 4.20 mm, below
+    FIGAROH's 4.30; over all three points 4.40 mm, below the pose fit's 4.54 on that measure but 0.10
+    mm above 4.30 (docs/real-data.md: which definition FIGAROH's figure uses)."""
+    real = jc.realdata.load("tiago")
+    points = cross_validate(real, "prior+markers")
+    assert points["heldout_rms_per_point_mm"][0] < 4.30
+    assert points["heldout_rms_3points_mm"] < 4.54

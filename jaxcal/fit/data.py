@@ -8,8 +8,17 @@ from jaxcal.fit.csvfile import DataError, UnitWarning  # noqa: F401  (re-exporte
 from jaxcal.measure.devices import Device, make_device
 
 
-def _as_device(device) -> Device:
-    return device if isinstance(device, Device) else make_device(device)
+def _as_device(device, y=None) -> Device:
+    """A Device from a Device or a kind name; "multi_position" (or "markers") by name takes its
+    number of points K from readings y of shape (N, K, 3)."""
+    if isinstance(device, Device):
+        return device
+    if device in ("multi_position", "markers"):
+        shape = np.shape(y) if y is not None else ()
+        if len(shape) != 3 or shape[2] != 3:
+            raise DataError(f"multi_position readings must have shape (N, K points, 3), got {shape or None}")
+        return make_device(device, points=shape[1])
+    return make_device(device)
 
 
 def _canonical_readings(device: Device, y, R, p, n: int):
@@ -40,11 +49,12 @@ class Dataset:
     """Joint values q (N, n_inputs), device readings y and optional covariates.
 
     `Dataset(q=Q, y=Y, device="position")`; for "pose" give y (N, 4, 4) or R= (N, 3, 3) and
-    p= (N, 3). Covariates (e.g. "time", "temperature", "direction") are arrays of length N.
+    p= (N, 3); for "multi_position" y (N, K, 3), K marker points per sample.
+    Covariates (e.g. "time", "temperature", "direction") are arrays of length N.
     """
 
     def __init__(self, q, y=None, device="position", covariates=None, R=None, p=None, joint_names=None, source=None):
-        self.device = _as_device(device)
+        self.device = _as_device(device, y)
         q = np.asarray(q, float)
         if q.ndim == 1:
             q = q[:, None]
@@ -92,7 +102,8 @@ class Dataset:
         joints: the joint columns in the order of q (default: every column that is not a
         measurement or a covariate, in file order; pass `robot.joint_names` to check them).
         device: "position" or "pose" (default: "pose" when the marker has orientation columns).
-        marker: which marker's columns to read when there are several (`x1..`, `x2..`; default the first).
+        marker: which marker's columns to read when there are several (`x1..`, `x2..`; default the first);
+        with device "multi_position" (or "markers"), the markers read together (default all of them), e.g. (1, 2, 3).
         length_unit ("m"/"mm"), angle_unit ("rad"/"deg"): override the file's `# units:` line; default SI.
         prismatic: joint columns that are lengths (in the length unit), added to those of a `# prismatic:`
         header line; `csvfile.prismatic_joints(robot)` lists a robot's.
@@ -107,6 +118,10 @@ class Dataset:
         if angle_unit is not None and angle_unit not in cf.ANGLE_SCALE:
             raise DataError(f"{path}: angle_unit must be 'rad' or 'deg', got {angle_unit!r}")
         head = cf.read_table(path, delimiter, header_only=True)  # the columns first, then the rows
+        multi = device in ("multi_position", "markers") or (isinstance(device, Device) and device.kind == "multi_position")
+        if multi:
+            return cls._multi_marker_csv(path, head.header, device, joints, marker, length_unit, angle_unit, covariates,
+                                         delimiter, check_units, prismatic)
         kind = None if device is None else _as_device(device).kind
         lay = cf.find_layout(head.header, path, joints, position_columns, marker, covariates, orientation=kind != "position")
         if kind == "pose" and lay.orientation is None:
@@ -132,6 +147,41 @@ class Dataset:
             ds = cls(q=q, R=R, p=p, device=device or "pose", covariates=cov, joint_names=lay.joints, source=path)
         else:
             ds = cls(q=q, y=p, device=device or "position", covariates=cov, joint_names=lay.joints, source=path)
+        ds.units = {"length": length, "angle": angle}
+        return ds
+
+    @classmethod
+    def _multi_marker_csv(cls, path, header, device, joints, markers, length_unit, angle_unit, covariates, delimiter,
+                          check_units, prismatic):
+        """`from_csv` for a multi-marker position device: the columns x_k, y_k, z_k of each marker k in `markers`
+        (default every marker with all three columns), readings (N, K, 3)."""
+        from jaxcal.fit import csvfile as cf
+
+        found = cf.find_layout(header, path, joints, None, None, covariates, orientation=False).markers
+        markers = found if markers is None else [str(m) for m in np.atleast_1d(markers)]
+        missing = [m for m in markers if m not in found]
+        if missing or not markers:
+            raise DataError(f"{path}: marker(s) {missing or markers} not found; markers with x, y, z columns: "
+                            f"{[m or '(unnumbered)' for m in found]}")
+        position = [f"{a}{m}" for m in markers for a in "xyz"]
+        lay = cf.find_layout(header, path, joints, position, None, covariates, orientation=False)
+        tab = cf.read_table(path, delimiter, needed=lay.joints + position + list(lay.covariates.values()))
+        length = cf.resolve_unit("length", length_unit, tab.units.get("length"), path)
+        angle = cf.resolve_unit("angle", angle_unit, tab.units.get("angle"), path)
+        prismatic = tuple(prismatic) + tuple(tab.units.get("prismatic", ()))
+        col = {h: i for i, h in enumerate(tab.header)}
+        q_raw = tab.values[:, [col[c] for c in lay.joints]]
+        p = tab.values[:, [col[c] for c in position]].reshape(len(q_raw), len(markers), 3) * cf.LENGTH_SCALE[length]
+        if check_units:
+            cf.check_joint_units(q_raw, lay.joints, tab.lines, angle, path, prismatic)
+            for k in range(len(markers)):
+                cf.check_length_units(p[:, k], tab.lines, length, path)
+        q = q_raw * cf.joint_scale(lay.joints, prismatic, length, angle)
+        dev = device if isinstance(device, Device) else make_device("multi_position", points=len(markers))
+        if dev.reading_shape != (len(markers), 3):
+            raise DataError(f"{path}: device has {dev.reading_shape[0]} marker points, the file gives markers {markers}")
+        cov = {name: tab.values[:, col[c]] for name, c in lay.covariates.items()}
+        ds = cls(q=q, y=p, device=dev, covariates=cov, joint_names=lay.joints, source=path)
         ds.units = {"length": length, "angle": angle}
         return ds
 

@@ -56,9 +56,8 @@ def residuals(robot: Robot, device: Device, a_full, q, y, w):
 
 def residual_weights(device: Device, sigma_position=1e-3, sigma_orientation=1e-3):
     """Per-component weights 1/sigma for one sample's residual vector."""
-    if device.kind in ("position", "three_point"):
-        m = 3 if device.kind == "position" else 9
-        return jnp.full(m, 1.0 / sigma_position)
+    if device.kind in ("position", "three_point", "multi_position"):
+        return jnp.full(3 * device.n_points, 1.0 / sigma_position)
     if device.kind == "pose":
         return jnp.concatenate([jnp.full(3, 1.0 / sigma_position), jnp.full(3, 1.0 / sigma_orientation)])
     if device.kind == "theodolite":

@@ -58,7 +58,7 @@ def simulate(robot, a_true, q, device="position", noise=None, device_params=None
     q_actual = q + s_q * rng.standard_normal(q.shape)
     tips = forward(robot, jnp.asarray(a_true, dtype=jnp.float64), q_actual)
     y = np.array(jax.vmap(dev.read, (0, None))(tips, d))
-    if dev.kind in ("position", "three_point"):
+    if dev.kind in ("position", "three_point", "multi_position"):
         y = y + s_p * rng.standard_normal(y.shape)
     elif dev.kind == "pose":
         y[:, :3, 3] += s_p * rng.standard_normal((len(y), 3))

@@ -180,7 +180,7 @@ def _noisy_readings(robot, device, a_true, d, q, key, s_q, s_p, s_r):
     q_act = q + s_q * jax.random.normal(k1, q.shape)
     tips = forward(robot, a_true, q_act)
     y = jax.vmap(device.read, (0, None))(tips, d)
-    if device.kind in ("position", "three_point"):
+    if device.kind in ("position", "three_point", "multi_position"):
         return y + s_p * jax.random.normal(k2, y.shape)
     if device.kind == "pose":
         dR = jax.vmap(exp_so3)(s_r * jax.random.normal(k3, (y.shape[0], 3)))

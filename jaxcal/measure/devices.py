@@ -8,6 +8,7 @@ A reading is expressed in the device frame: y = D^-1 T_tip M.
 | kind          | reading (one sample)            | parameters                  |
 |---------------|---------------------------------|-----------------------------|
 | "position"    | marker point, (3,)              | dev (6), tool point (3)     |
+| "multi_position" | K marker points, (K, 3)      | dev (6), tool points (3 K)  |
 | "pose"        | marker frame, (4, 4)            | dev (6), tool frame (6)     |
 | "orientation" | marker rotation, (3, 3)         | dev rotation (3), tool (3)  |
 | "three_point" | three sphere centres, (3, 3)    | dev (6); spheres known      |
@@ -22,6 +23,12 @@ Laser range: |D^-1 T_tip m|, the distance from the instrument centre; its orient
 observable and not a parameter. "inclinometer" is the "orientation" device.
 
 "tracker" (a laser tracker with unknown base frame) is the "position" device.
+
+Multi-marker position ("multi_position", alias "markers"; `make_device("multi_position", points=K)`):
+K points rigid on the tip link, read together in one device frame, y = [D^-1 T_tip m_1, ...,
+D^-1 T_tip m_K]; each point has its own unknown offset `tool.p<k>.x|y|z`, all sharing the one
+device frame. Unlike "three_point" (a known target whose pose is read), the point offsets are
+identified with the robot. Per-sample position error: RMS over the K points of the 3-D error.
 """
 
 from __future__ import annotations
@@ -55,6 +62,11 @@ class Device:
     free_mask: np.ndarray
     reading_shape: tuple[int, ...]
     targets: np.ndarray | None = None  # three-point target: sphere centres in the tip frame (3, 3)
+
+    @property
+    def n_points(self) -> int:
+        """Marker points per reading: K for "multi_position", 3 for "three_point", 1 for "position"."""
+        return {"multi_position": self.reading_shape[0], "three_point": 3, "position": 1}.get(self.kind, 0)
 
     def _key(self):
         t = None if self.targets is None else np.asarray(self.targets).tobytes()
@@ -96,6 +108,9 @@ class Device:
         if self.kind == "position":
             D = frame_from_params(d[0:6])
             return D.inverse().apply(tip.apply(d[6:9]))
+        if self.kind == "multi_position":
+            D = frame_from_params(d[0:6])
+            return D.inverse().apply(tip.apply(d[6:].reshape(-1, 3)))
         if self.kind == "pose":
             D = frame_from_params(d[0:6])
             M = frame_from_params(d[6:12])
@@ -118,7 +133,7 @@ class Device:
         Orientation differences are rotation vectors of R_meas R_pred^T (seed 001 eq 23-24),
         never differences of Euler angles.
         """
-        if self.kind in ("position", "three_point"):
+        if self.kind in ("position", "three_point", "multi_position"):
             return (meas - pred).reshape(-1)
         if self.kind == "pose":
             dp = meas[:3, 3] - pred[:3, 3]
@@ -136,8 +151,8 @@ class Device:
         """(position error per sample (N,), orientation error per sample (N,) or None) from residuals (N, m)."""
         if self.kind == "position":
             return jnp.linalg.norm(res, axis=-1), None
-        if self.kind == "three_point":
-            r = res.reshape(res.shape[0], 3, 3)
+        if self.kind in ("three_point", "multi_position"):
+            r = res.reshape(res.shape[0], -1, 3)
             return jnp.sqrt(jnp.mean(jnp.sum(r**2, -1), -1)), None
         if self.kind == "pose":
             return jnp.linalg.norm(res[:, :3], axis=-1), jnp.linalg.norm(res[:, 3:], axis=-1)
@@ -155,11 +170,19 @@ def _frame_names(prefix, parts=_FRAME):
     return tuple(f"{prefix}.{p}" for p in parts)
 
 
-def make_device(kind: str, targets=None) -> Device:
-    """A device of the given kind with nominal (identity) frames, all parameters unknown."""
+def make_device(kind: str, targets=None, points: int | None = None) -> Device:
+    """A device of the given kind with nominal (identity) frames, all parameters unknown.
+    `points`: the number K of marker points of a "multi_position" device."""
     kind = {"tracker": "position", "laser_tracker": "position", "location": "pose", "full_pose": "pose",
-            "inclinometer": "orientation", "laser": "laser_range"}.get(kind, kind)
-    if kind == "position":
+            "inclinometer": "orientation", "laser": "laser_range", "markers": "multi_position"}.get(kind, kind)
+    if points is not None and kind != "multi_position":
+        raise ValueError(f"points= is for the multi_position device, not {kind!r}")
+    if kind == "multi_position":
+        if points is None or int(points) != points or points < 1:
+            raise ValueError(f"multi_position needs the number of marker points, points=K >= 1, got {points!r}")
+        names = _frame_names("dev") + tuple(f"tool.p{k}.{a}" for k in range(1, int(points) + 1) for a in "xyz")
+        shape = (int(points), 3)
+    elif kind == "position":
         names = _frame_names("dev") + _frame_names("tool", ("x", "y", "z"))
         shape = (3,)
     elif kind == "pose":
@@ -181,9 +204,9 @@ def make_device(kind: str, targets=None) -> Device:
         names = _frame_names("dev", ("x", "y", "z")) + _frame_names("tool", ("x", "y", "z"))
         shape = (1,)
     else:
-        raise ValueError(f"unknown device {kind!r}; expected position, tracker, pose, orientation (inclinometer), "
-                         "three_point, theodolite or laser_range")
-    units = tuple("angle" if n.split(".")[1].startswith("r") else "length" for n in names)
+        raise ValueError(f"unknown device {kind!r}; expected position, tracker, multi_position (markers), pose, "
+                         "orientation (inclinometer), three_point, theodolite or laser_range")
+    units = tuple("angle" if n.split(".")[-1].startswith("r") else "length" for n in names)
     return Device(kind, names, np.zeros(len(names)), units, np.ones(len(names), bool), shape, targets)
 
 
