@@ -3,8 +3,9 @@
 The study itself (ten Table 4.2c runs, Figures 4.12-4.14, 4.19, Table 4.3) is
 benchmarks/montecarlo_fourbar3d.py; these tests check on a smaller set-up the two properties it
 rests on, each of which fails when the closure derivative or the covariance is wrong:
-- the linearised covariance (eq 3.28-3.30, actuator noise mapped through the closed-loop model)
-  matches the Monte Carlo covariance (Appendix A.5 similarity, diagonal ratios);
+- the linearised covariance (eq 3.28-3.30) matches the Monte Carlo covariance (Appendix A.5
+  similarity within what the number of draws allows, diagonal ratios), with measurement noise and
+  (slow test) crank noise mapped through the closed-loop model;
 - the residual after identification is chi-square with 6N - p degrees of freedom and scales
   linearly with the noise (a Gauss-Newton that stops short of the least-squares minimum, e.g.
   with a wrong closed-loop Jacobian, leaves a larger residual).
@@ -47,9 +48,10 @@ def test_linear_covariance_matches_monte_carlo_through_closure(measurement_mc):
     mc, norms = measurement_mc
     s = mc.summary()
     assert s["converged"] == RUNS and s["outliers"] == 0
-    # Appendix A.5: 0 for equal spectra; the thesis called its 0.35 poor. With 64 draws of 14-16
-    # parameters the sampling error of the Monte Carlo covariance alone gives ~0.1-0.2.
-    assert s["similarity"] < 0.3, s
+    # Appendix A.5: 0 for equal spectra; the thesis called its 0.35 poor. A finite number of draws
+    # alone gives > 0: bound by the 95 % quantile of the metric for Gaussian draws of the linear covariance
+    _, q95 = study.sampling_similarity(mc.covariance_linear, RUNS)
+    assert s["similarity"] < q95, (s, q95)
     ratio = np.diag(mc.covariance_mc) / np.diag(mc.covariance_linear)
     lo, hi = scipy.stats.chi2.ppf([0.0005, 0.9995], RUNS - 1) / (RUNS - 1)  # sampling band of a variance ratio
     assert lo < ratio.min() and ratio.max() < hi, ratio
@@ -77,7 +79,8 @@ def test_actuator_noise_through_the_closure(setup):
     rb, a_true, q = setup
     mc, norms = study.run_point(rb, a_true, q, 0.0, 1e-8, RUNS, seed=2, chunk=RUNS)
     s = mc.summary()
-    assert s["converged"] == RUNS and s["similarity"] < 0.3, s
+    _, q95 = study.sampling_similarity(mc.covariance_linear, RUNS)
+    assert s["converged"] == RUNS and s["similarity"] < q95, (s, q95)
     ratio = np.diag(mc.covariance_mc) / np.diag(mc.covariance_linear)
     lo, hi = scipy.stats.chi2.ppf([0.0005, 0.9995], RUNS - 1) / (RUNS - 1)
     assert lo < ratio.min() and ratio.max() < hi, ratio
