@@ -190,6 +190,21 @@ def sampling_similarity(cov, n, reps=200, seed=0):
     return float(np.median(vals)), float(np.quantile(vals, 0.95))
 
 
+def sensitivities(rb, a_true, q, mc, var_m, extent=1e-4, seed=7):
+    """Table 4.3 column 6 / Figure 4.20: the rise of the weighted cost (eq 4.5) for one noisy data set
+    when the estimate moves a common `extent` along each eigenvector of the Monte Carlo covariance.
+    Returns (Monte Carlo eigenvalues, cost rises, log-log slope of rise vs eigenvalue; -1 is the
+    inverse relation the thesis notes)."""
+    sd = float(np.sqrt(var_m))
+    data = jc.simulate(rb, a_true, q, "pose", noise={"position": sd, "orientation": sd}, seed=seed)
+    fit = jc.identify(rb, data, known=("dev", "tool"), sigma_position=sd, sigma_orientation=sd)
+    if tuple(fit.estimated) != tuple(mc.names):
+        raise RuntimeError(f"noisy fit estimated {fit.estimated}, Monte Carlo {mc.names}")
+    lam, _, rise = un.cost_sensitivity(fit, data, mc.covariance_mc, extent=extent)
+    slope = float(np.polyfit(np.log(lam), np.log(rise), 1)[0])
+    return lam, rise, slope
+
+
 def table_4_3(mc):
     """Table 4.3 layout for run 3: diagonals, sorted eigenvalues, the eigenvector of the worst eigenvalue
     ratio, and the simultaneous 95 % confidence interval widths (eq 3.42) from the Monte Carlo covariance."""
@@ -246,6 +261,14 @@ def plots(res, mc3, levels_m, levels_q):
     ax.legend(fontsize=7)
     save_atomic(fig, os.path.join(OUT, "montecarlo_fourbar3d_chi2_qq.png"))
 
+    sens = res["run3"]["sensitivity"]
+    fig, ax = plt.subplots(figsize=(4.8, 4.2))
+    ax.loglog(sens["eig_mc"], sens["cost_rise"], "o")
+    ax.set(xlabel="eigenvalue of the Monte Carlo covariance", ylabel=f"cost rise, step {sens['extent']:g} along the eigenvector",
+           title=f"cf. Figure 4.20 (log-log slope {sens['loglog_slope']:.3f})")
+    ax.grid(True, which="both", alpha=0.3)
+    save_atomic(fig, os.path.join(OUT, "montecarlo_fourbar3d_sensitivity.png"))
+
 
 def speed_table(runs):
     """Identifications/s for the four-bar: vmapped vs a loop of the same jitted solve, 1 vs 2 host devices."""
@@ -285,6 +308,8 @@ def main(quick=False, speed=False):
     n3 = int((mc3.converged & mc3.keep).sum())
     res["run3"] = {**s3, "table_4_3": table_4_3(mc3), "estimated": list(mc3.names), "timings": mc3.timings,
                    "similarity_sampling_only": sampling_similarity(mc3.covariance_linear, n3)}
+    lam, rise, slope = sensitivities(rb, a_true, q, mc3, TABLE_4_2C[2][0])
+    res["run3"]["sensitivity"] = {"extent": 1e-4, "eig_mc": lam, "cost_rise": rise, "loglog_slope": slope}
     # Figure 4.12 traces: runs 1-5 (s_theta = 0) and 6-10 (s_theta = 1e-6) of Table 4.2c, by level
     by = {(r["var_m"], r["var_theta"]): r["residual_median"] for r in rows}
     f12 = {vq: [by[(vm, vq)] for vm in levels_m] for vq in (0.0, 1e-6)}
@@ -321,6 +346,9 @@ def report(res):
     print(f"  worst eigenvalue ratio MC/linear: eigenvalue {t43['worst_eigenvalue']}, "
           f"{t43['eig_mc'][t43['worst_eigenvalue'] - 1] / t43['eig_linear'][t43['worst_eigenvalue'] - 1]:.2f} "
           f"(thesis: eigenvalue 4, 27.6, the redundant alpha_2,2)")
+    sens = r3["sensitivity"]
+    print(f"  cost rise along MC eigenvectors (extent 1e-4) vs eigenvalue: log-log slope {sens['loglog_slope']:.3f} "
+          f"(thesis: 'inverse relationship'); rises {min(sens['cost_rise']):.3g} .. {max(sens['cost_rise']):.3g}")
     print(f"  Figure 4.12 crossover s_m at s_theta = 1e-6: {res['figure_4_12']['crossover_var_m']} (thesis ~1e-7)")
     print(f"  Figure 4.13 crossover s_theta at s_m = 2.5e-7: {res['figure_4_13']['crossover_var_theta']} (thesis ~1e-7)")
     print(f"{'parameter':<10}{'diag lin':>11}{'diag MC':>11}{'eig lin':>11}{'eig MC':>11}{'CI width':>11}")
