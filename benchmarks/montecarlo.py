@@ -6,7 +6,8 @@
 2. Studies like Figures 4.12-4.14 and 4.19: residual norm vs measurement noise, vs actuator
    noise, vs number of measurements; chi-square Q-Q plot; the Table 4.3 comparison of linear and
    Monte Carlo covariances. Run on every built-in the engine has among "fourbar3d", "mrr1" and
-   "stanford". Plots go to bench-output/montecarlo/.
+   "stanford". Plots go to bench-output/montecarlo/. The four-bar with the thesis' own settings
+   (Table 4.2b truth, the ten Table 4.2c noise runs, Table 4.3) is benchmarks/montecarlo_fourbar3d.py.
 
 Run: python benchmarks/montecarlo.py [--quick]
 """
