@@ -40,8 +40,11 @@ def base_set(W, priority, c: float | None = None) -> BaseSet:
     order = priority_order(priority)
     Wo = W[:, order]
     R = scipy.linalg.qr(Wo, mode="r")[0] if Wo.size else np.zeros((0, 0))
-    diag = np.abs(np.diag(R)) if R.size else np.zeros(0)
     cols = Wo.shape[1]
+    # Fewer rows than columns: R has min(m, n) pivots; the columns past the m-th are dependent.
+    diag = np.zeros(cols)
+    if R.size:
+        diag[: min(R.shape)] = np.abs(np.diag(R))
     scale = np.max(diag) if diag.size else 0.0
     tau = (cols if c is None else c) * np.finfo(float).eps * scale
     keep = diag > tau
