@@ -14,8 +14,8 @@ Method (DESIGN "The sim-to-real gap diagnosis"; issue 7):
    that holds the geometry and device frame near that fold's baseline (the geometry fitted without
    the effects; mu = PRIOR_MU per typical size, relative to one reading at the baseline RMS), started
    from the Gauss-Newton step of the same regularised objective. A refit that still diverges is
-   flagged in `Diagnosis.diverged` and replaced by its baseline (its held-out samples count as not
-   improved; it never sets the noise floor): non-finite; a parameter leaving the sane box (a link
+   flagged in `Diagnosis.diverged` and replaced by its baseline (its held-out samples are left out
+   of before / after / structure; it never sets the noise floor): non-finite; a parameter leaving the sane box (a link
    moved or turned by more than BOX m or rad from the baseline, a gain off by more than BOX, an
    effect deflecting a joint or the frame by more than BOX rad or m); or an RMS (held-out for a
    fold) more than DIVERGED_RATIO x the baseline's. Then held-out RMS before and after, the noise
@@ -125,7 +125,8 @@ class Diagnosis:
             lines.append("selected (greedy): " + "; ".join(f"{e}{'@' + ','.join(js) if js else ''}" for e, js in self.selected))
         lines.append(f"structure left after the selected model: p = {self.structure_p:.3g}")
         for d in self.diverged:
-            lines.append(f"refit diverged ({d['fit']}): {d['reason']}; replaced by the fit without the effects")
+            left = "; its held-out samples are left out of the scores" if d["fit"] != "all data" else ""
+            lines.append(f"refit diverged ({d['fit']}): {d['reason']}; replaced by the fit without the effects{left}")
         lines.append("")
         lines.append("which (ranking; linearised joint fits, held-out):")
         lines.append(f"  {'effect':<14}{'joints':<12}{'k':>3}{'RMS before':>12}{'after':>10}{'score':>10}{'BIC':>12}{'p':>10}")
@@ -465,8 +466,12 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
         return out
 
     oof_base, oof_fin = out_of_fold(r_base), out_of_fold(r_fin)
-    before = float(np.sqrt(np.sum(oof_base[:, :3] ** 2) / n)) * pos_scale
-    after = float(np.sqrt(np.sum(oof_fin[:, :3] ** 2) / n)) * pos_scale
+    # A diverged fold's held-out samples are left out of before / after / structure (scored on the other folds).
+    bad = [int(d["fit"].split()[1]) - 1 for d in diverged if d["fit"] != "all data"]
+    scored = ~np.isin(fold[:n], bad)
+    scored = scored if scored.any() else np.ones(n, bool)  # every fold diverged: the baseline everywhere
+    before = float(np.sqrt(np.mean(np.sum(oof_base[scored, :3] ** 2, axis=1)))) * pos_scale
+    after = float(np.sqrt(np.mean(np.sum(oof_fin[scored, :3] ** 2, axis=1)))) * pos_scale
 
     floor = _noise_floor_repeats(data, groups)
     if floor is not None:
@@ -487,7 +492,8 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
     motion = _joint_motion(model, J[folds], data.q, npad, m)
     directions = {f"joint angle {jn[j]}": motion[:, :, j] for j in range(robot.n_inputs)}
     feats_base = wh.decompose(oof_base, bases, tips, directions, seed=seed)
-    feats_fin = wh.decompose(oof_fin, bases, tips, directions, seed=seed)
+    feats_fin = wh.decompose(oof_fin[scored], {k: v[scored] for k, v in bases.items()}, tips[scored],
+                             {k: v[scored] for k, v in directions.items()}, seed=seed)
     structure_p = float(min(1.0, min(f.p_value for f in feats_fin) * len(feats_fin))) if feats_fin else 1.0
     axis = wh.axis_rms(oof_base * comp_sigma[None, :] * 1e3, [f"{a} ({'mm' if i < 3 else 'mrad'})" for i, a in enumerate(labels)])
     where = {"axis_rms": axis,
