@@ -99,6 +99,7 @@ class Diagnosis:
     folds: int
     timings: dict
     diverged: list = dataclasses.field(default_factory=list)  # [{"fit": "fold b" | "all data", "reason": ...}] refits flagged
+    mass_model: str = ""  # masses loading the gravity effects (compliance, link_bending, gravity-load features)
     _plot_data: dict = dataclasses.field(default_factory=dict, repr=False)
 
     def to_dict(self) -> dict:
@@ -112,6 +113,7 @@ class Diagnosis:
             "parameters": self.parameters, "ranking": [c.to_dict() for c in self.ranking],
             "where": self.where, "not_candidates": self.not_candidates, "n_samples": self.n_samples,
             "folds": self.folds, "timings_s": self.timings, "diverged": self.diverged,
+            "mass_model": self.mass_model,
         }, default=float))
 
     def report(self) -> str:
@@ -144,6 +146,7 @@ class Diagnosis:
             lines.append("absorbed parameters (not separable): " + ", ".join(part))
         for e, why in self.not_candidates.items():
             lines.append(f"not a candidate: {e} ({why})")
+        lines.append(f"gravity loads (compliance, link_bending): {self.mass_model}")
         lines.append("")
         axes = ", ".join(f"{k} {v:.4g}" for k, v in self.where["axis_rms"].items())
         lines.append(f"where (baseline held-out residual): RMS per axis {axes}")
@@ -520,4 +523,5 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
                  "joint_names": jn, "revolute": model.revolute, "labels": labels}
     return Diagnosis(robot.name, device.kind, verdict, joints, ranking, shrink, where, before, after, noise_floor, noise_source,
                      [(s["effect"], tuple(jn[j] for j in s["js"])) for s in selected], params, structure_p, not_candidates,
-                     n, folds, timings, diverged=diverged, _plot_data=plot_data)
+                     n, folds, timings, diverged=diverged, mass_model=model.mass_model,
+                     _plot_data=plot_data)

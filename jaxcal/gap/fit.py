@@ -134,7 +134,7 @@ def predict(x, q, cov, *, model):
 
 @functools.partial(jax.jit, static_argnames=("model",))
 def loads_and_tips(x, q, cov, *, model):
-    """Gravity load about each joint axis (N, n; kg m, default masses) and the tip position (N, 3)."""
+    """Gravity load about each joint axis (N, n; kg m, the model's masses) and the tip position (N, 3)."""
     from jaxcal.gap.effects import gravity_loads, joint_axes
     from jaxcal.kin.model import frames_single, joint_variables
 
