@@ -316,12 +316,14 @@ def test_urdf_gravity_effect_gradients_match_central_differences():
 
 @pytest.mark.slow
 def test_compliance_with_urdf_masses_is_recovered():
-    """UR10 (URDF inertials, 28.7 kg): compliance at the shoulder-lift joint injected with the URDF gravity loads at
-    8x the noise is diagnosed at that joint and its constant (rad per kg m of load) recovered within 15 %."""
-    robot, data, truth = _case("ur10", "position", {"gap.compliance.shoulder_lift_joint": 1.0})
+    """UR10 (URDF inertials, 28.7 kg): compliance at the elbow injected with the URDF gravity loads at 8x the noise
+    is diagnosed at that joint and its constant (rad per kg m of load) recovered within 15 %. (Not at the shoulder
+    lift: its axis is horizontal through the vertical pan axis, so its compliance and bending at the pan joint are
+    the same rotation up to a 0.13 m offset of the pivot, and scored within 0.3 of each other in a trial run.)"""
+    robot, data, truth = _case("ur10", "position", {"gap.compliance.elbow_joint": 1.0})
     d = jc.gap.diagnose(robot, data)
     assert d.mass_model.startswith("URDF inertials")
-    assert d.verdict == "compliance" and d.joints == ("shoulder_lift_joint",), d.report()
-    est, tru = d.parameters["gap.compliance.shoulder_lift_joint"], truth["gap.compliance.shoulder_lift_joint"]
+    assert d.verdict == "compliance" and d.joints == ("elbow_joint",), d.report()
+    est, tru = d.parameters["gap.compliance.elbow_joint"], truth["gap.compliance.elbow_joint"]
     assert abs(est / tru - 1) < 0.15, (est, tru)
     assert d.shrink > 0.8
