@@ -3,9 +3,11 @@
 For each built-in real dataset (`jaxcal.realdata`, FIGAROH's examples, Apache-2.0) run
 `jc.gap.diagnose` (5-fold held-out scoring, device frame and marker identified with the geometry)
 and write the report, the plots and the JSON to bench-output/gap_real/<name>/, and a summary to
-benchmarks/results/gap_real.json.
+benchmarks/results/gap_real.json. The gravity effects use the URDF inertials of the robots; with
+--default-masses the robot's inertials are dropped, so they use the default mass model (1 kg at each
+body origin), written to bench-output/gap_real_default_masses/ and results/gap_real_default_masses.json.
 
-Run: python benchmarks/gap_real.py [talos tiago ur10]
+Run: python benchmarks/gap_real.py [--default-masses] [talos tiago ur10]
 """
 
 from __future__ import annotations
@@ -18,31 +20,42 @@ import time
 import jaxcal as jc
 from jaxcal.io_atomic import write_text_atomic
 
-OUT = os.path.join("bench-output", "gap_real")
-RESULTS = os.path.join("benchmarks", "results", "gap_real.json")
+
+def without_inertials(robot):
+    """The robot without its URDF inertials: the gap effects fall back to the default mass model."""
+    return robot.replace(name=f"{robot.name} (default masses)",
+                         extras={k: v for k, v in robot.extras.items() if k != "inertia"})
 
 
-def run(name: str) -> dict:
+def run(name: str, out: str, default_masses: bool) -> dict:
     real = jc.realdata.load(name)
+    robot = without_inertials(real.robot) if default_masses else real.robot
     t = time.perf_counter()
-    d = jc.gap.diagnose(real.robot, real.data)
+    d = jc.gap.diagnose(robot, real.data)
     wall = time.perf_counter() - t
-    folder = os.path.join(OUT, name)
+    folder = os.path.join(out, name)
     d.plot(folder)
     report = d.report()
     write_text_atomic(os.path.join(folder, "report.txt"), report)
     print(f"== {name} ({len(real.data)} samples, {real.data.device.kind}), {wall:.1f} s\n{report}\n")
     top = [dict(effect=r.effect, joints=list(r.joints), before_mm=r.heldout_rms_before, after_mm=r.heldout_rms_after,
                 score=r.score) for r in d.ranking[:5]]
-    return dict(dataset=name, samples=len(real.data), device=real.data.device.kind, verdict=d.verdict, joints=list(d.joints),
-                shrink=d.shrink, top5=top, wall_s=wall)
+    return dict(dataset=name, samples=len(real.data), device=real.data.device.kind, mass_model=d.mass_model, verdict=d.verdict,
+                joints=list(d.joints), selected=[dict(effect=e, joints=list(j)) for e, j in d.selected], shrink=d.shrink,
+                heldout_rms_before_mm=d.heldout_rms_before, heldout_rms_after_mm=d.heldout_rms_after, noise_floor_mm=d.noise_floor,
+                noise_source=d.noise_source, structure_p=d.structure_p, parameters=d.parameters, diverged=d.diverged, top5=top,
+                wall_s=wall)
 
 
-def main(names):
-    rows = [run(n) for n in names]
-    os.makedirs(os.path.dirname(RESULTS), exist_ok=True)
-    write_text_atomic(RESULTS, json.dumps(rows, indent=1, default=float))
+def main(args):
+    default_masses = "--default-masses" in args
+    names = [a for a in args if a != "--default-masses"] or ["talos", "tiago", "ur10"]
+    tag = "gap_real_default_masses" if default_masses else "gap_real"
+    rows = [run(n, os.path.join("bench-output", tag), default_masses) for n in names]
+    results = os.path.join("benchmarks", "results", f"{tag}.json")
+    os.makedirs(os.path.dirname(results), exist_ok=True)
+    write_text_atomic(results, json.dumps(rows, indent=1, default=float))
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:] or ["talos", "tiago", "ur10"])
+    main(sys.argv[1:])

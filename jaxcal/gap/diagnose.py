@@ -10,9 +10,17 @@ Method (DESIGN "The sim-to-real gap diagnosis"; issue 7):
    as not separable. Score = held-out log-likelihood gain n/2 ln(SSE_0/SSE_c) minus the number of
    parameters added; significance by the F-test of the nested fit on all data, Bonferroni over
    candidates; BIC reported too. Greedy forward selection adds effects while one is significant.
-3. How far: the selected model is refitted by nonlinear LM on every fold; held-out RMS before and
-   after, the noise floor (repeated poses, else the residual of the fit with its degrees of
-   freedom) and shrink = (before^2 - after^2) / (before^2 - floor^2), the fraction of the gap closed.
+3. How far: the selected model is refitted by nonlinear LM on every fold, with a Tikhonov prior
+   that holds the geometry and device frame near that fold's baseline (the geometry fitted without
+   the effects; mu = PRIOR_MU per typical size, relative to one reading at the baseline RMS), started
+   from the Gauss-Newton step of the same regularised objective. A refit that still diverges is
+   flagged in `Diagnosis.diverged` and replaced by its baseline (its held-out samples are left out
+   of before / after / structure; it never sets the noise floor): non-finite; a parameter leaving the sane box (a link
+   moved or turned by more than BOX m or rad from the baseline, a gain off by more than BOX, an
+   effect deflecting a joint or the frame by more than BOX rad or m); or an RMS (held-out for a
+   fold) more than DIVERGED_RATIO x the baseline's. Then held-out RMS before and after, the noise
+   floor (repeated poses, else the residual of the fit with its degrees of freedom) and
+   shrink = (before^2 - after^2) / (before^2 - floor^2), the fraction of the gap closed.
 4. Verdict: "none" when no candidate is significant and the held-out residual has no structure;
    "unexplained" when structure remains (where.decompose, Bonferroni over features) that the
    selected effects do not capture; else the first selected effect.
@@ -37,6 +45,12 @@ from jaxcal.gap.effects import EFFECTS, GLOBAL_EFFECTS, NEEDS, gap_model
 
 SEPARABLE_TOL = 1e-6
 MAX_EFFECT_COLUMNS = 18  # effect columns the selected model may add (max_effects x at most 6)
+# Refit control (step 3). mu = 1: a departure of one typical size (1 cm, 10 mrad) from the baseline geometry
+# costs as much as one reading at the baseline RMS; well-measured directions (curvature >> 1) are not biased,
+# directions the training fold leaves nearly free are held at the baseline instead of running off.
+PRIOR_MU = 1.0
+BOX = 0.1  # sane box of a refit around its baseline: 0.1 m or rad of geometry or of effect deflection, 10 % of a gain
+DIVERGED_RATIO = 3.0  # a refit whose (held-out) RMS exceeds this multiple of the baseline's diverged
 
 
 @dataclasses.dataclass
@@ -84,6 +98,8 @@ class Diagnosis:
     n_samples: int
     folds: int
     timings: dict
+    diverged: list = dataclasses.field(default_factory=list)  # [{"fit": "fold b" | "all data", "reason": ...}] refits flagged
+    mass_model: str = ""  # masses loading the gravity effects (compliance, link_bending, gravity-load features)
     _plot_data: dict = dataclasses.field(default_factory=dict, repr=False)
 
     def to_dict(self) -> dict:
@@ -96,7 +112,8 @@ class Diagnosis:
             "selected": [{"effect": e, "joints": list(j)} for e, j in self.selected],
             "parameters": self.parameters, "ranking": [c.to_dict() for c in self.ranking],
             "where": self.where, "not_candidates": self.not_candidates, "n_samples": self.n_samples,
-            "folds": self.folds, "timings_s": self.timings,
+            "folds": self.folds, "timings_s": self.timings, "diverged": self.diverged,
+            "mass_model": self.mass_model,
         }, default=float))
 
     def report(self) -> str:
@@ -109,6 +126,9 @@ class Diagnosis:
         if self.selected:
             lines.append("selected (greedy): " + "; ".join(f"{e}{'@' + ','.join(js) if js else ''}" for e, js in self.selected))
         lines.append(f"structure left after the selected model: p = {self.structure_p:.3g}")
+        for d in self.diverged:
+            left = "; its held-out samples are left out of the scores" if d["fit"] != "all data" else ""
+            lines.append(f"refit diverged ({d['fit']}): {d['reason']}; replaced by the fit without the effects{left}")
         lines.append("")
         lines.append("which (ranking; linearised joint fits, held-out):")
         lines.append(f"  {'effect':<14}{'joints':<12}{'k':>3}{'RMS before':>12}{'after':>10}{'score':>10}{'BIC':>12}{'p':>10}")
@@ -126,6 +146,7 @@ class Diagnosis:
             lines.append("absorbed parameters (not separable): " + ", ".join(part))
         for e, why in self.not_candidates.items():
             lines.append(f"not a candidate: {e} ({why})")
+        lines.append(f"gravity loads (compliance, link_bending): {self.mass_model}")
         lines.append("")
         axes = ", ".join(f"{k} {v:.4g}" for k, v in self.where["axis_rms"].items())
         lines.append(f"where (baseline held-out residual): RMS per axis {axes}")
@@ -189,6 +210,45 @@ def _joint_motion(model, J, q, npad, m):
     return out
 
 
+def _prior_step(J, r, cols, rows, scale, mu):
+    """First Gauss-Newton step, in typical sizes z (x = x_ref + scale z), of the refit's objective (fit.solve_folds):
+    argmin_z ||r + J_cols (scale z)||^2 / s^2 + sum_i mu_i z_i^2 on the rows `rows`, s^2 their mean square residual."""
+    s = max(float(np.sqrt(np.mean(r[rows] ** 2))), 1e-300)
+    A = np.vstack([J[np.ix_(rows, cols)] * scale[cols] / s, np.diag(np.sqrt(mu))])
+    b = np.concatenate([-r[rows] / s, np.zeros(len(cols))])
+    nrm = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
+    return np.linalg.lstsq(A / nrm, b, rcond=None)[0] / nrm
+
+
+def box_limits(model, moment_norm) -> np.ndarray:
+    """Largest sane change of each parameter from the baseline: BOX (m, rad, relative) for the geometry and for
+    effects that offset a joint or the frame directly; BOX / max |M_j| (kg m) for compliance and bending at joint
+    j, so that their deflection c |M_j| stays within BOX rad over the samples."""
+    lim = np.full(model.n_params, BOX)
+    for i, (effect, j) in enumerate(zip(model.effect_of, model.joint_of)):
+        if effect in ("compliance", "link_bending"):
+            peak = float(np.max(moment_norm[:, j]))
+            lim[model.n_geometry + i] = BOX / peak if peak > 0 else np.inf
+    return lim
+
+
+def _divergence(x_fit, x_base, r_fit, r_base, rows, cols, limits, names, heldout):
+    """Why a refit diverged ("" if it did not): non-finite, a parameter outside its box (`box_limits`) around the
+    baseline, or a position RMS on `rows` (held-out, or the fitted samples) above DIVERGED_RATIO x the baseline's."""
+    after = float(np.sqrt(np.mean(r_fit[rows, :3] ** 2)))
+    before = float(np.sqrt(np.mean(r_base[rows, :3] ** 2)))
+    if not (np.all(np.isfinite(x_fit)) and np.isfinite(after)):
+        return "non-finite parameters or residuals"
+    dz = np.abs(x_fit[cols] - x_base[cols]) / limits[cols]
+    if dz.max() > 1.0:
+        i = int(np.argmax(dz))
+        step = abs(x_fit[cols[i]] - x_base[cols[i]])
+        return f"{names[cols[i]]} moved {step:.3g} from the baseline (sane box +-{limits[cols[i]]:.3g})"
+    if after > DIVERGED_RATIO * before:
+        return f"{'held-out' if heldout else 'fit'} RMS {after / before:.3g} x that of the baseline (limit {DIVERGED_RATIO:g})"
+    return ""
+
+
 def _lstsq_step(J, r, cols, rows):
     """Gauss-Newton step on the columns `cols` using the rows `rows`: argmin ||r + J d||."""
     A = J[np.ix_(rows, cols)]
@@ -205,7 +265,7 @@ class _Linear:
 
     def evaluate(self, cols):
         cols = np.asarray(cols, int)
-        sse, sse_pos, steps = 0.0, 0.0, []
+        sse, sse_pos = 0.0, 0.0
         for b in range(self.k):
             train = self.valid_rows & (self.fold_rows != b)
             test = self.valid_rows & (self.fold_rows == b)
@@ -213,11 +273,10 @@ class _Linear:
             h = self.r[b] + self.J[b][:, cols] @ d
             sse += float(np.sum(h[test] ** 2))
             sse_pos += float(np.sum(h[test & self.pos_rows] ** 2))
-            steps.append(d)
         full = np.flatnonzero(self.valid_rows)
         d = _lstsq_step(self.J[self.k], self.r[self.k], cols, full)
         rss = float(np.sum((self.r[self.k] + self.J[self.k][:, cols] @ d)[full] ** 2))
-        return sse, sse_pos, rss, steps + [d]
+        return sse, sse_pos, rss
 
 
 def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_effects: int = 3, effects=EFFECTS,
@@ -265,11 +324,19 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
             w[b] = use[:, None] / sig[None, :]
         return w
 
-    def solve(x0s, cols, sig):
+    def prior_weights(cols, mu):
+        """mu per z column: on geometry and device-frame columns (and the unused padding), not on effects."""
+        out = np.full(K_active, mu)
+        out[:len(cols)] = np.where(np.asarray(cols) < model.n_geometry, mu, 0.0)
+        return out
+
+    def solve(x_refs, cols, sig, z_starts=None, mu=0.0):
         S = jnp.asarray(gf.selection(cols, P, scale, K_active))
-        args = dict(ref=jnp.asarray(x0s), w=jnp.asarray(fold_weights(sig)), S=S, q=qj, y=yj, cov=cj)
-        xs, ok, steps = gf.solve_folds(jnp.asarray(x0s), args, model=model, max_steps=max_steps)
-        return np.asarray(xs), np.asarray(ok), int(np.max(steps))
+        z_starts = np.zeros((folds + 1, K_active)) if z_starts is None else z_starts
+        args = dict(ref=jnp.asarray(x_refs), w=jnp.asarray(fold_weights(sig)), S=S, mu=jnp.asarray(prior_weights(cols, mu)),
+                    q=qj, y=yj, cov=cj)
+        xs, ok, steps = gf.solve_folds(jnp.asarray(x_refs), jnp.asarray(z_starts), args, model=model, max_steps=max_steps)
+        return np.array(xs), np.asarray(ok), int(np.max(steps))
 
     geo_free = np.concatenate([robot.free_mask, device.free_mask, np.zeros(len(model.effect_names), bool)])
     x0s = np.tile(x_nom, (folds + 1, 1))
@@ -334,14 +401,14 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
     base_eval = lin.evaluate(base_cols)
     held_rms_before_lin = rms_mm(base_eval[1])
     for _round in range(max_effects):
-        sse0, _, rss0, _ = lin.evaluate(base_cols)
+        sse0, _, rss0 = lin.evaluate(base_cols)
         rows = []
         for c in cands:
             if not len(c["cols"]) or any(c is s for s in selected):
                 rows.append((c, None))
                 continue
             cols = base_cols + list(c["cols"])
-            sse, sse_pos, rss, _ = lin.evaluate(cols)
+            sse, sse_pos, rss = lin.evaluate(cols)
             k = len(c["cols"])
             dof = n_rows - len(cols)
             F = ((rss0 - rss) / k) / max(rss / dof, 1e-300)
@@ -369,18 +436,30 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
         base_cols = base_cols + list(best["cols"])
     lin_s = time.perf_counter() - t_lin
 
-    # How far: nonlinear refit of the selected model on every fold.
+    # How far: nonlinear refit of the selected model on every fold, regularised toward the fold's baseline.
     t_fin = time.perf_counter()
-    if selected:  # start the nonlinear refit from the linearised joint fit of every fold
-        x_start = xs.copy()
-        for b, d in enumerate(lin.evaluate(base_cols)[3]):
-            x_start[b, base_cols] += d
-        xs_final, ok_final, steps_final = solve(x_start, base_cols, comp_sigma)
-    else:
-        xs_final, ok_final, steps_final = xs, ok_base, 0
     w_unit = jnp.asarray(valid[:, None] / comp_sigma[None, :])
     r_base = np.asarray(gf.residual_batch(jnp.asarray(xs), qj, yj, cj, w_unit, model=model))
-    r_fin = np.asarray(gf.residual_batch(jnp.asarray(xs_final), qj, yj, cj, w_unit, model=model))
+    diverged = []
+    if selected:  # start from the regularised Gauss-Newton step of every fold
+        mu = prior_weights(base_cols, PRIOR_MU)[:len(base_cols)]
+        z_start = np.zeros((folds + 1, K_active))
+        for b in range(folds + 1):
+            train = np.flatnonzero(valid_rows & (fold_rows != b)) if b < folds else np.flatnonzero(valid_rows)
+            z_start[b, :len(base_cols)] = _prior_step(J[b], r[b], base_cols, train, scale, mu)
+        xs_final, ok_final, steps_final = solve(xs, base_cols, comp_sigma, z_start, PRIOR_MU)
+        r_fin = np.array(gf.residual_batch(jnp.asarray(xs_final), qj, yj, cj, w_unit, model=model))
+        limits = box_limits(model, np.asarray(gf.moment_norms(jnp.asarray(xs[folds]), qj, model=model))[:n])
+        for b in range(folds + 1):
+            rows = (valid & (fold == b)) if b < folds else valid
+            why = _divergence(xs_final[b], xs[b], r_fin[b], r_base[b], rows, np.asarray(base_cols), limits, model.names,
+                              b < folds)
+            if why:
+                diverged.append({"fit": f"fold {b + 1}" if b < folds else "all data", "reason": why})
+                xs_final[b], r_fin[b] = xs[b], r_base[b]
+    else:
+        xs_final, ok_final, steps_final, r_fin = xs, ok_base, 0, r_base
+    all_data_diverged = any(d["fit"] == "all data" for d in diverged)
 
     def out_of_fold(rr):
         out = np.zeros((n, m))
@@ -390,17 +469,21 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
         return out
 
     oof_base, oof_fin = out_of_fold(r_base), out_of_fold(r_fin)
-    before = float(np.sqrt(np.sum(oof_base[:, :3] ** 2) / n)) * pos_scale
-    after = float(np.sqrt(np.sum(oof_fin[:, :3] ** 2) / n)) * pos_scale
+    # A diverged fold's held-out samples are left out of before / after / structure (scored on the other folds).
+    bad = [int(d["fit"].split()[1]) - 1 for d in diverged if d["fit"] != "all data"]
+    scored = ~np.isin(fold[:n], bad)
+    scored = scored if scored.any() else np.ones(n, bool)  # every fold diverged: the baseline everywhere
+    before = float(np.sqrt(np.mean(np.sum(oof_base[scored, :3] ** 2, axis=1)))) * pos_scale
+    after = float(np.sqrt(np.mean(np.sum(oof_fin[scored, :3] ** 2, axis=1)))) * pos_scale
 
     floor = _noise_floor_repeats(data, groups)
     if floor is not None:
         noise_floor, noise_source = floor * 1e3, "repeated poses"
     else:
         rf = r_fin[folds][:n, :3]
-        dof = max(n * m - len(base_cols), 1)
+        dof = max(n * m - len(G if all_data_diverged else base_cols), 1)
         noise_floor = float(np.sqrt(np.sum(rf**2) / n * (n * m) / dof)) * pos_scale
-        noise_source = "fit residual with its degrees of freedom"
+        noise_source = "fit residual with its degrees of freedom" + (" (baseline: the refit diverged)" if all_data_diverged else "")
 
     shrink = shrink_fraction(before, after, noise_floor) if selected else 0.0
 
@@ -412,7 +495,8 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
     motion = _joint_motion(model, J[folds], data.q, npad, m)
     directions = {f"joint angle {jn[j]}": motion[:, :, j] for j in range(robot.n_inputs)}
     feats_base = wh.decompose(oof_base, bases, tips, directions, seed=seed)
-    feats_fin = wh.decompose(oof_fin, bases, tips, directions, seed=seed)
+    feats_fin = wh.decompose(oof_fin[scored], {k: v[scored] for k, v in bases.items()}, tips[scored],
+                             {k: v[scored] for k, v in directions.items()}, seed=seed)
     structure_p = float(min(1.0, min(f.p_value for f in feats_fin) * len(feats_fin))) if feats_fin else 1.0
     axis = wh.axis_rms(oof_base * comp_sigma[None, :] * 1e3, [f"{a} ({'mm' if i < 3 else 'mrad'})" for i, a in enumerate(labels)])
     where = {"axis_rms": axis,
@@ -427,7 +511,7 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
         verdict = selected[0]["effect"]
         joints = tuple(jn[j] for s in selected if s["effect"] == verdict for j in s["js"])
     params = {}
-    for s in selected:
+    for s in ([] if all_data_diverged else selected):
         for i in s["cols"]:
             params[model.names[i]] = float(xs_final[folds][i])
     steps = {"baseline": steps_base, "final": steps_final,
@@ -439,4 +523,5 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
                  "joint_names": jn, "revolute": model.revolute, "labels": labels}
     return Diagnosis(robot.name, device.kind, verdict, joints, ranking, shrink, where, before, after, noise_floor, noise_source,
                      [(s["effect"], tuple(jn[j] for j in s["js"])) for s in selected], params, structure_p, not_candidates,
-                     n, folds, timings, plot_data)
+                     n, folds, timings, diverged=diverged, mass_model=model.mass_model,
+                     _plot_data=plot_data)

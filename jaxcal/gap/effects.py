@@ -13,8 +13,10 @@ joint-space effects (added to the motor reading before the joint model, seed 001
   encoder_gain dq_j = g_j * q_j
   coupling     dq_j = k_j * q_{j-1}                                         (off-diagonal Cm)
 gravity effects (first-order rotations about the joint axis (o_j, z_j) of everything distal):
-  load M_j = sum_{bodies k distal to j} (p_k - o_j) x (m_k * g_hat), default mass model 1 kg per
-  body origin (kg m; gravity -z of the robot base frame)
+  load M_j = sum_{bodies k distal to j} (c_k - o_j) x (m_k * g_hat) (kg m; g_hat = -z of the robot
+  base frame, so the gravity torque is 9.81 M_j N m), with the mass m_k and centre of mass c_k of
+  each body from the URDF inertials (`robot.extras["inertia"]`) when the robot has them, else the
+  default mass model: 1 kg at each body origin (c_k = p_k)
   compliance   dphi_j = c_j (z_j . M_j) z_j                                 (revolute joints)
   link_bending dphi_j = b_j (M_j - (z_j . M_j) z_j)      (bending perpendicular to the joint axis)
   tip: p' = p + sum_j dphi_j x (p - o_j),  R' = exp(sum_j dphi_j) R
@@ -71,7 +73,16 @@ class GapModel:
     joint_of: tuple[int, ...]  # joint index of each effect parameter, -1 for global ones
     joint_body: tuple[int, ...]  # body consuming each joint input
     revolute: tuple[bool, ...]
-    distal: tuple[tuple[int, ...], ...]  # bodies distal to each joint (their origins carry the default masses)
+    distal: tuple[tuple[int, ...], ...]  # bodies distal to each joint (their masses load the joint)
+    body_mass: tuple[float, ...] = ()  # kg per body (URDF inertials); () = the default mass model
+    body_com: tuple[tuple[float, float, float], ...] = ()  # centre of mass per body, in the body frame (m)
+
+    @property
+    def mass_model(self) -> str:
+        """Which masses load the gravity effects (say it in reports)."""
+        if self.body_mass:
+            return f"URDF inertials ({sum(self.body_mass):.3g} kg on {sum(m > 0 for m in self.body_mass)} bodies)"
+        return "default: 1 kg at each body origin"
 
     @property
     def n_geometry(self) -> int:
@@ -154,7 +165,17 @@ def _cached_model(robot: Robot, device: Device) -> GapModel:
     for t in ("x", "y", "z", "range"):
         add(f"gap.device_bias.{t}", "device_bias", -1)
     distal = tuple(_descendants(robot, b) for b in joint_body)
-    return GapModel(robot, device, tuple(names), tuple(eff), tuple(jnt), tuple(joint_body), revolute, distal)
+    mass, com = _urdf_masses(robot)
+    return GapModel(robot, device, tuple(names), tuple(eff), tuple(jnt), tuple(joint_body), revolute, distal, mass, com)
+
+
+def _urdf_masses(robot: Robot):
+    """(mass per body, centre of mass per body) from the URDF inertials, or ((), ()) when the robot has none."""
+    inertia = robot.extras.get("inertia") if robot.extras else None
+    if not inertia or len(inertia) != len(robot.bodies) or sum(b["mass"] for b in inertia) <= 0:
+        return (), ()
+    return (tuple(float(b["mass"]) for b in inertia),
+            tuple(tuple(float(c) for c in np.asarray(b["com"], float)) for b in inertia))
 
 
 def gap_model(robot: Robot, device: Device) -> GapModel:
@@ -213,12 +234,18 @@ def joint_axes(model: GapModel, F):
 
 
 def gravity_loads(model: GapModel, F, o):
-    """Gravity moment M_j (n, 3) about each joint axis point, default 1 kg per distal body origin."""
+    """Gravity moment M_j (n, 3; kg m) about each joint axis point o_j: sum over the distal bodies k of
+    (c_k - o_j) x (m_k g_hat); URDF masses and centres of mass when known, else 1 kg at each body origin."""
     g = jnp.asarray(G_HAT)
+    if model.body_mass:
+        mass = jnp.asarray(model.body_mass)
+        centres = F.p + jnp.einsum("bij,bj->bi", F.R, jnp.asarray(model.body_com))
+    else:
+        mass, centres = jnp.ones(len(model.robot.bodies)), F.p
     loads = []
     for j, bodies in enumerate(model.distal):
-        arm = F.p[jnp.asarray(bodies)] - o[j]
-        loads.append(jnp.sum(jnp.cross(arm, g), axis=0))
+        k = jnp.asarray(bodies)
+        loads.append(jnp.sum(mass[k, None] * jnp.cross(centres[k] - o[j], g), axis=0))
     return jnp.stack(loads)
 
 

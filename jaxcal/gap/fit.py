@@ -1,8 +1,10 @@
 """Joint identification of geometry, device frame and effects for the gap diagnosis.
 
 The stacked residual generalises `jaxcal.fit.identify._stacked` with per-sample covariates and
-effect parameters: data rows w * (y - read(x, q, c)) and a pin (1 - mask)(x - x_ref)/scale that
-holds the parameters a candidate does not estimate. Samples are padded to a bucket size with
+effect parameters: data rows w * (y - read(x, q, c)) with x = x_ref + S z (S selects the estimated
+parameters at their typical size, so the others stay at x_ref), and Tikhonov rows sqrt(mu) z that
+hold the estimated geometry near x_ref (seed 004 eq 3.12, as `jaxcal.realdata`'s "prior").
+Samples are padded to a bucket size with
 weight 0 and folds are weight masks, so one compiled LM (optimistix, identify's solver) serves
 every candidate, fold and dataset of similar size; the folds are solved in one vmapped call.
 """
@@ -86,25 +88,30 @@ def _data_rows(model, z, a):
     return residuals(model, a["ref"] + a["S"] @ z, a["q"], a["y"], a["cov"], a["w"]).reshape(-1)
 
 
-_AXES = {"ref": 0, "w": 0, "S": None, "q": None, "y": None, "cov": None}
+def _rows_with_prior(model, z, a):
+    return jnp.concatenate([_data_rows(model, z, a), jnp.sqrt(a["mu"]) * z])
+
+
+_AXES = {"ref": 0, "w": 0, "S": None, "mu": None, "q": None, "y": None, "cov": None}
 
 
 @functools.partial(jax.jit, static_argnames=("model", "max_steps"))
-def solve_folds(x0s, args, *, model, max_steps=100):
-    """LM on z (x = x0 + S z) from each x0s[b] with weights args["w"][b] (the folds): (x, ok, steps).
+def solve_folds(x_refs, z_starts, args, *, model, max_steps=100):
+    """LM on z, x = x_ref + S z, for each fold b: reference x_refs[b], start z_starts[b], weights args["w"][b].
 
-    Only the K selected columns are differentiated (K tangents instead of every parameter)."""
+    Minimises ||rows(z)||^2 / s_b^2 + sum_i mu_i z_i^2, with s_b^2 the mean square data row at the
+    reference (so mu_i = 1 makes a departure of one typical size cost as much as one reading at the
+    reference's RMS residual). Returns (x, ok, steps). Only the K selected columns are differentiated."""
 
-    def one(x0, a):
-        fn = functools.partial(_data_rows, model)
-        z0 = jnp.zeros(a["S"].shape[1])
-        a = dict(a, ref=x0)
-        r0 = fn(z0, a)
-        a = dict(a, w=a["w"] / jnp.maximum(jnp.sqrt(jnp.sum(r0**2) / jnp.maximum(jnp.sum(a["w"] > 0), 1)), 1e-12))
+    def one(x_ref, z0, a):
+        a = dict(a, ref=x_ref)
+        r_ref = _data_rows(model, jnp.zeros_like(z0), a)
+        a = dict(a, w=a["w"] / jnp.maximum(jnp.sqrt(jnp.sum(r_ref**2) / jnp.maximum(jnp.sum(a["w"] > 0), 1)), 1e-12))
+        fn = functools.partial(_rows_with_prior, model)
         sol = optx.least_squares(fn, _solver("lm", RTOL, ATOL), z0, a, max_steps=max_steps, throw=False)
-        return x0 + a["S"] @ sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
+        return x_ref + a["S"] @ sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 
-    return jax.vmap(one, (0, _AXES))(x0s, args)
+    return jax.vmap(one, (0, 0, _AXES))(x_refs, z_starts, args)
 
 
 @functools.partial(jax.jit, static_argnames=("model",))
@@ -127,7 +134,7 @@ def predict(x, q, cov, *, model):
 
 @functools.partial(jax.jit, static_argnames=("model",))
 def loads_and_tips(x, q, cov, *, model):
-    """Gravity load about each joint axis (N, n; kg m, default masses) and the tip position (N, 3)."""
+    """Gravity load about each joint axis (N, n; kg m, the model's masses) and the tip position (N, 3)."""
     from jaxcal.gap.effects import gravity_loads, joint_axes
     from jaxcal.kin.model import frames_single, joint_variables
 
@@ -137,6 +144,22 @@ def loads_and_tips(x, q, cov, *, model):
         F = frames_single(model.robot, a, joint_variables(model.robot, a, qi))
         o, z = joint_axes(model, F)
         return jnp.sum(gravity_loads(model, F, o) * z, axis=1), F.p[model.robot.tip]
+
+    return jax.vmap(one)(q)
+
+
+@functools.partial(jax.jit, static_argnames=("model",))
+def moment_norms(x, q, *, model):
+    """|M_j| (N, n; kg m): norm of the gravity moment about each joint of every sample (compliance and bending act on it)."""
+    from jaxcal.gap.effects import gravity_loads, joint_axes
+    from jaxcal.kin.model import frames_single, joint_variables
+
+    a = x[:model.robot.n_params]
+
+    def one(qi):
+        F = frames_single(model.robot, a, joint_variables(model.robot, a, qi))
+        o, _ = joint_axes(model, F)
+        return jnp.linalg.norm(gravity_loads(model, F, o), axis=1)
 
     return jax.vmap(one)(q)
 
