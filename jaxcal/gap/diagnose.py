@@ -36,6 +36,9 @@ from jaxcal.gap import where as wh
 from jaxcal.gap.effects import EFFECTS, GLOBAL_EFFECTS, NEEDS, gap_model
 
 SEPARABLE_TOL = 1e-6
+# Closed loops leave geometric directions at 1e-13 (rounded table values) to 1e-8 relative (Delta, Table 4.6):
+# their base set drops columns below this relative pivot (unidentifiable at any noise; the LM then converges).
+CLOSED_BASE_TOL = 1e-6
 MAX_EFFECT_COLUMNS = 18  # effect columns the selected model may add (max_effects x at most 6)
 
 
@@ -279,7 +282,8 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
     Jf = np.asarray(Jf[0])
     cand_geo = np.flatnonzero(geo_free)
     prio = np.concatenate([robot.priority, device.priority])
-    G = np.sort(cand_geo[base_set(Jf[:, cand_geo], prio[cand_geo]).independent])
+    c_base = None if robot.closure is None else CLOSED_BASE_TOL / np.finfo(float).eps
+    G = np.sort(cand_geo[base_set(Jf[:, cand_geo], prio[cand_geo], c=c_base).independent])
     K_active = gf.active_size(len(G) + MAX_EFFECT_COLUMNS)
     xs, ok_base, steps_base = solve(x0s, G, comp_sigma)
     if device.kind == "pose":  # weight position and orientation by their residual RMS at the baseline
@@ -309,6 +313,9 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
         need = NEEDS.get(eff)
         if need is not None and need not in present:
             not_candidates[eff] = f"needs the {'temperature or time' if need == 'thermal' else need} covariate"
+            continue
+        if not model.index(eff).size:
+            not_candidates[eff] = "not in the effect library of this robot"
             continue
         variants = [()] if eff in GLOBAL_EFFECTS else [(j,) for j in model.joints_with(eff)]
         for js in variants:

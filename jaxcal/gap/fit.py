@@ -128,6 +128,10 @@ def predict(x, q, cov, *, model):
 @functools.partial(jax.jit, static_argnames=("model",))
 def loads_and_tips(x, q, cov, *, model):
     """Gravity load about each joint axis (N, n; kg m, default masses) and the tip position (N, 3)."""
+    if model.robot.closure is not None:
+        from jaxcal.gap.closed import loads_and_tips as closed_loads
+
+        return closed_loads(model, x, q)
     from jaxcal.gap.effects import gravity_loads, joint_axes
     from jaxcal.kin.model import frames_single, joint_variables
 
