@@ -49,6 +49,8 @@ def configurations(robot, n, seed):
     if robot.closure is not None:
         from jaxcal.gap.closed import delta_workspace
 
+        if robot.name != "delta":
+            raise ValueError(f"closed-loop robot {robot.name!r}: the blind benchmark draws workspaces for the Delta only")
         return delta_workspace(n, seed=seed)
     return jc.random_configurations(robot, n, seed=seed)
 

@@ -36,9 +36,9 @@ from jaxcal.gap import where as wh
 from jaxcal.gap.effects import EFFECTS, GLOBAL_EFFECTS, NEEDS, gap_model
 
 SEPARABLE_TOL = 1e-6
-# Closed loops leave geometric directions at 1e-13 (rounded table values) to 1e-8 relative (Delta, Table 4.6):
-# their base set drops columns below this relative pivot (unidentifiable at any noise; the LM then converges).
-CLOSED_BASE_TOL = 1e-6
+# Closed loops leave geometric dependencies at ~1e-13 relative (the Delta's Table 4.6 rounds its values to
+# 4 digits): their base set drops columns whose QR pivot is below this share of the largest.
+CLOSED_BASE_TOL = 1e-10
 MAX_EFFECT_COLUMNS = 18  # effect columns the selected model may add (max_effects x at most 6)
 
 
