@@ -200,6 +200,18 @@ def _lstsq_step(J, r, cols, rows):
     return d
 
 
+def _lower_cost_start(x_lin, x_base, q, y, cov, w, model):
+    """Per fold, the linearised joint fit as the refit's start where it lowers that fold's training cost, else the
+    baseline: on the Delta a Gauss-Newton step along nearly flat geometric directions can land far outside the
+    linear range (training cost up 1e4-fold), and the LM may stall there."""
+    def cost(x):
+        r = np.asarray(gf.residual_batch(jnp.asarray(x), q, y, cov, jnp.ones(w.shape[1:]), model=model))
+        return np.sum((r * w) ** 2, axis=(1, 2))
+
+    better = cost(x_lin) <= cost(x_base)
+    return np.where(better[:, None], x_lin, x_base)
+
+
 class _Linear:
     """Linearised joint fits around each fold's baseline: held-out SSE and full-data RSS."""
 
@@ -382,6 +394,7 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
         x_start = xs.copy()
         for b, d in enumerate(lin.evaluate(base_cols)[3]):
             x_start[b, base_cols] += d
+        x_start = _lower_cost_start(x_start, xs, qj, yj, cj, fold_weights(comp_sigma), model)
         xs_final, ok_final, steps_final = solve(x_start, base_cols, comp_sigma)
     else:
         xs_final, ok_final, steps_final = xs, ok_base, 0
