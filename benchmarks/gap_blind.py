@@ -276,6 +276,7 @@ def _generate_closed(folder, i, robot, rng):
                     if (vis >= VISIBLE_MIN) == (kind == "effect") and (eff != "device_bias" or kind == "effect"):
                         options.append((eff, j, unit, vis))
             eff, joint, unit, vis = options[int(rng.integers(len(options)))]
+            unit = {kk: 1e-3 * v for kk, v in unit.items()}  # a unit of 1 rad would open the loop for many samples
             x1 = x0.copy()
             x1[model.n_geometry:] = effect_vector(model, unit)
             disp = readings(model, x1, q, cov) - y0
