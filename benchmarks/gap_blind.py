@@ -1,12 +1,19 @@
 """Blind check of `jc.gap.diagnose` (issue 7): generate cases, diagnose them without the labels, score.
 
-    python benchmarks/gap_blind.py --cases 40 --folder /tmp/gap_blind [--seed 0]
+    python benchmarks/gap_blind.py --cases 40 --folder /tmp/gap_blind [--seed 0] [--robots mrr1,stanford]
+    python benchmarks/gap_blind.py --robots delta --cases 40 --folder /tmp/gap_blind_delta --max-steps 40 \
+        --out benchmarks/results/gap_blind_delta
 
-1. generate: each case draws a robot (built-in serial robots), a device, a noise level, 30-300
-   samples, covariates, and a hidden truth: no effect, one library effect at a random separable
-   joint with magnitude 1x-10x the noise RMS, or a decoy outside the library (third-harmonic joint
-   error, a local bump over the workspace, a quadratic cross-joint error; right answer
-   "unexplained"). Data go to cases/NNN.npz; labels to labels.json, written apart.
+1. generate: each case draws a robot (from --robots: the built-in serial robots and the Delta), a
+   device, a noise level, 30-300 samples, covariates, and a hidden truth: no effect, one library
+   effect at a random separable joint with magnitude 1x-10x the noise RMS, or a decoy outside the
+   library (third-harmonic joint error, a local bump over the workspace, a quadratic cross-joint
+   error; right answer "unexplained"). Data go to cases/NNN.npz; labels to labels.json, written apart.
+   Delta (closed loop, position device, actuator settings reaching a 400 mm cube): its Table 4.6
+   geometry absorbs the smooth actuator-space effects almost entirely (see `visible_fraction`), so
+   effects are drawn among those whose displacement keeps >= VISIBLE_MIN of its size after the
+   linearised geometry fit; an "absorbed" kind injects one of the others (right answer "none": after
+   calibration nothing is left), and decoys are scaled on their visible part.
 2. diagnose: reads only the npz files, writes predictions.json.
 3. score: reads labels and predictions; confusion matrix, top-1 accuracy, right-joint rate,
    false-alarm rate, mean shrink; results/gap_blind.json and a markdown table.
@@ -29,11 +36,54 @@ import numpy as np  # noqa: E402
 import jaxcal as jc  # noqa: E402
 from jaxcal.gap.diagnose import shrink_fraction  # noqa: E402
 from jaxcal.gap.effects import GLOBAL_EFFECTS, JOINT_EFFECTS, NEEDS, gap_model  # noqa: E402
-from jaxcal.gap.fit import loads_and_tips  # noqa: E402
+from jaxcal.gap.fit import covariate_matrix, jacobians, loads_and_tips, padded_size  # noqa: E402
 from jaxcal.gap.simulate import add_noise, effect_vector, readings  # noqa: E402
 
 ROBOTS = ("mrr1", "stanford")
 DECOYS = ("harmonic3", "bump", "quadratic")
+VISIBLE_MIN = 0.2  # closed loops: share of an effect's displacement left after the linearised geometry fit
+
+
+def configurations(robot, n, seed):
+    """Joint readings of n random samples: within the joint limits (serial), reaching the 400 mm cube (Delta)."""
+    if robot.closure is not None:
+        from jaxcal.gap.closed import delta_workspace
+
+        if robot.name != "delta":
+            raise ValueError(f"closed-loop robot {robot.name!r}: the blind benchmark draws workspaces for the Delta only")
+        return delta_workspace(n, seed=seed)
+    return jc.random_configurations(robot, n, seed=seed)
+
+
+def geometry_basis(robot, model, x, q, cov):
+    """Orthonormal basis (N*3, r) of the position-reading changes the geometry and device frame can make,
+    linearised at x (base set with the diagnosis' tolerance for closed loops), and the effect Jacobian
+    columns (N*3, n_effect_params)."""
+    from jaxcal.fit.base import base_set
+    from jaxcal.gap.diagnose import CLOSED_BASE_TOL
+
+    n = len(q)
+    C, _ = covariate_matrix(model, cov, n)
+    npad = padded_size(n)
+    qp = np.tile(robot.home_np, (npad, 1))
+    qp[:n] = q
+    Cp = np.zeros((npad, C.shape[1]))
+    Cp[:n] = C
+    w = np.zeros((npad, 3))
+    w[:n] = 1.0
+    _, J = jacobians(x[None], qp, np.zeros((npad, 3)), Cp, w, model=model)
+    J = np.asarray(J[0])[: 3 * n]
+    geo = np.flatnonzero(np.concatenate([robot.free_mask, model.device.free_mask]))
+    prio = np.concatenate([robot.priority, model.device.priority])
+    G = geo[base_set(J[:, geo], prio[geo], c=CLOSED_BASE_TOL / np.finfo(float).eps).independent]
+    U, s, _ = np.linalg.svd(J[:, G], full_matrices=False)
+    return U[:, s > 1e-10 * s[0]], J[:, model.n_geometry:]
+
+
+def visible_fraction(basis, disp):
+    """Share of a displacement (N, 3) the geometry cannot absorb: |(I - U U^T) d| / |d|."""
+    d = np.asarray(disp).reshape(-1)
+    return float(np.linalg.norm(d - basis @ (basis.T @ d)) / max(np.linalg.norm(d), 1e-300))
 
 
 def _write_json(path, obj):
@@ -99,18 +149,21 @@ def _position(y):
     return y[:, :3, 3] if y.ndim == 3 else y
 
 
-def generate(folder, n_cases, seed):
+def generate(folder, n_cases, seed, robots=ROBOTS):
     os.makedirs(os.path.join(folder, "cases"), exist_ok=True)
     rng = np.random.default_rng(seed)
     labels = {}
     for i in range(n_cases):
-        name = str(rng.choice(ROBOTS))
+        name = str(rng.choice(robots))
         robot = jc.robots.get(name)
+        if robot.closure is not None:
+            labels[f"{i:04d}"] = _generate_closed(folder, i, robot, rng)
+            continue
         device = "pose" if (name == "mrr1" and rng.random() < 0.25) else "position"
         model = gap_model(robot, jc.make_device(device))
         n = int(rng.integers(30, 301))
         sigma = float(rng.choice([1e-5, 3e-5, 1e-4]))
-        q = jc.random_configurations(robot, n, seed=int(rng.integers(1 << 30)))
+        q = configurations(robot, n, int(rng.integers(1 << 30)))
         cov = {}
         if rng.random() < 0.6:
             cov["time"] = np.sort(rng.uniform(0, 3600, n))
@@ -169,6 +222,80 @@ def generate(folder, n_cases, seed):
     _write_json(os.path.join(folder, "labels.json"), labels)
 
 
+def _generate_closed(folder, i, robot, rng):
+    """One closed-loop case (position device); see the module docstring. Returns its label."""
+    model = gap_model(robot, jc.make_device("position"))
+    n = int(rng.integers(30, 301))
+    sigma = float(rng.choice([1e-5, 3e-5, 1e-4]))
+    q = configurations(robot, n, int(rng.integers(1 << 30)))
+    u = rng.random()
+    kind = "none" if u < 0.15 else ("decoy" if u < 0.3 else ("absorbed" if u < 0.4 else "effect"))
+    cov = {}
+    if rng.random() < 0.6:
+        cov["time"] = np.sort(rng.uniform(0, 3600, n))
+    if rng.random() < 0.5:
+        cov["temperature"] = 20 + 3 * np.sin(np.linspace(0, rng.uniform(1, 4), n)) + rng.normal(0, 0.05, n)
+    if rng.random() < 0.5 or kind == "effect":  # every effect is then a candidate (visibility needs its covariate)
+        cov["direction"] = rng.choice([-1.0, 1.0], (n, robot.n_inputs))
+    if kind == "effect":
+        cov.setdefault("time", np.sort(rng.uniform(0, 3600, n)))
+    d = np.zeros(model.device.n_params)
+    d[:3] = rng.normal(0, 0.05, 3)
+    d[3:6] = rng.normal(0, 0.05, 3)
+    x0 = np.concatenate([np.asarray(jc.perturb(robot, 1e-3, seed=int(rng.integers(1 << 30)))), d, np.zeros(len(model.effect_names))])
+    magnitude = float(rng.uniform(1, 10))
+    target = magnitude * sigma * np.sqrt(3)
+    label = {"robot": robot.name, "device": "position", "n": n, "noise": sigma, "kind": kind, "magnitude": magnitude}
+    y0 = readings(model, x0, q, cov)
+    if kind == "none":
+        y = y0
+        label.update(effect="none", joints=[], magnitude=0.0)
+    else:
+        basis, E = geometry_basis(robot, model, x0, q, cov)
+        if kind == "decoy":
+            dk = str(rng.choice(DECOYS))
+            _, y1, _ = _decoy_readings(robot, model, x0, q, cov, dk, rng)
+            vis = visible_fraction(basis, y1 - y0)
+            if vis < VISIBLE_MIN:  # a joint-space decoy the geometry absorbs: use a workspace bump instead
+                dk = "bump"
+                _, y1, _ = _decoy_readings(robot, model, x0, q, cov, dk, rng)
+                vis = visible_fraction(basis, y1 - y0)
+            disp = y1 - y0
+            k = target / max(vis * np.sqrt(np.mean(np.sum(disp**2, axis=1))), 1e-300)  # the visible part at target
+            y = y0 + k * disp
+            label.update(effect="unexplained", decoy=dk, joints=[], visible=vis)
+        else:
+            options = []
+            for eff in JOINT_EFFECTS + GLOBAL_EFFECTS:
+                for j in (model.joints_with(eff) if eff in JOINT_EFFECTS else [None]):
+                    unit = _unit_effect(model, eff, j, rng)
+                    v = effect_vector(model, unit)
+                    if not np.any(E @ v):  # no effect on these readings (its covariate is absent)
+                        continue
+                    vis = visible_fraction(basis, E @ v)
+                    if (vis >= VISIBLE_MIN) == (kind == "effect") and (eff != "device_bias" or kind == "effect"):
+                        options.append((eff, j, unit, vis))
+            eff, joint, unit, vis = options[int(rng.integers(len(options)))]
+            unit = {kk: 1e-3 * v for kk, v in unit.items()}  # a unit of 1 rad would open the loop for many samples
+            x1 = x0.copy()
+            x1[model.n_geometry:] = effect_vector(model, unit)
+            disp = readings(model, x1, q, cov) - y0
+            k = target / max(np.sqrt(np.mean(np.sum(disp**2, axis=1))), 1e-300)
+            x1[model.n_geometry:] *= k
+            y = readings(model, x1, q, cov)
+            joints = [] if joint is None else [robot.joint_names[joint]]
+            params = {kk: float(v * k) for kk, v in unit.items()}
+            if kind == "effect":
+                label.update(effect=eff, joints=joints, parameters=params, visible=vis)
+            else:
+                label.update(effect="none", joints=[], absorbed_effect=eff, absorbed_joints=joints, parameters=params, visible=vis)
+    label["covariates"] = sorted(cov)
+    y = add_noise("position", y, sigma, seed=int(rng.integers(1 << 30)))
+    np.savez(os.path.join(folder, "cases", f"{i:04d}.npz"), q=q, y=y, robot=robot.name, device="position",
+             **{f"cov_{k}": v for k, v in cov.items()})
+    return label
+
+
 def _shard(folder, shard):
     """Case files of shard "i/n": cases sorted by (robot, device, padded size) so a process compiles few shapes."""
     from jaxcal.gap.fit import padded_size
@@ -186,7 +313,7 @@ def _shard(folder, shard):
     return [k[-1] for k in keyed[i * chunk:(i + 1) * chunk]]
 
 
-def diagnose_all(folder, limit_s=None, shard=None, out_path=None):
+def diagnose_all(folder, limit_s=None, shard=None, out_path=None, max_steps=None):
     """Diagnose the cases (reading only the case files); the predictions file is rewritten after each case."""
     out_path = out_path or os.path.join(folder, "predictions.json")
     preds = json.load(open(out_path)) if os.path.exists(out_path) else {}
@@ -202,7 +329,7 @@ def diagnose_all(folder, limit_s=None, shard=None, out_path=None):
         cov = {k[4:]: z[k] for k in z.files if k.startswith("cov_")}
         data = jc.Dataset(q=z["q"], y=z["y"], device=str(z["device"]), covariates=cov)
         t = time.perf_counter()
-        d = jc.gap.diagnose(robot, data)
+        d = jc.gap.diagnose(robot, data, **({} if max_steps is None else {"max_steps": max_steps}))
         wall = time.perf_counter() - t
         preds[key] = {"verdict": d.verdict, "joints": list(d.joints), "shrink": d.shrink, "before": d.heldout_rms_before,
                       "after": d.heldout_rms_after, "floor": d.noise_floor, "structure_p": d.structure_p,
@@ -229,7 +356,7 @@ def score(folder):
         ok = pr["verdict"] == lab["effect"]
         per_kind[lab["kind"]][0] += ok
         per_kind[lab["kind"]][1] += 1
-        if lab["kind"] == "none":
+        if lab["effect"] == "none":  # no effect, or one the geometry absorbs (closed loops)
             fa_n += 1
             fa += pr["verdict"] != "none"
         if lab["kind"] == "effect" and lab["magnitude"] >= 5 and lab["n"] >= 100:
@@ -299,15 +426,17 @@ def main(argv=None):
     ap.add_argument("--stage", choices=("all", "generate", "diagnose", "score"), default="all")
     ap.add_argument("--shard", default=None, help="diagnose only shard i/n (parallel processes)")
     ap.add_argument("--predictions", default=None, help="predictions file (default FOLDER/predictions.json)")
+    ap.add_argument("--robots", default=",".join(ROBOTS), help="comma-separated robots to draw cases from (e.g. delta)")
+    ap.add_argument("--max-steps", type=int, default=None, help="LM steps per fit in diagnose (default: diagnose's)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "gap_blind"))
     args = ap.parse_args(argv)
     if args.stage in ("all", "generate") and not os.path.exists(os.path.join(args.folder, "labels.json")):
-        generate(args.folder, args.cases, args.seed)
+        generate(args.folder, args.cases, args.seed, tuple(args.robots.split(",")))
     if args.stage in ("all", "diagnose"):
-        diagnose_all(args.folder, args.limit_s, args.shard, args.predictions)
+        diagnose_all(args.folder, args.limit_s, args.shard, args.predictions, args.max_steps)
     if args.stage in ("all", "score"):
         res = score(args.folder)
-        res["settings"] = {"cases_generated": args.cases, "seed": args.seed}
+        res["settings"] = {"cases_generated": args.cases, "seed": args.seed, "robots": args.robots, "max_steps": args.max_steps}
         os.makedirs(os.path.dirname(args.out), exist_ok=True)
         _write_json(args.out + ".json", res)
         md = table(res)

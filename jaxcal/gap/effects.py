@@ -180,8 +180,10 @@ def _urdf_masses(robot: Robot):
 
 def gap_model(robot: Robot, device: Device) -> GapModel:
     """The effect model of a robot and device (cached, so compiled solvers are shared)."""
-    if robot.closure is not None:
-        raise NotImplementedError(f"robot {robot.name!r} has loop closures: the gap effect library covers open chains")
+    if robot.closure is not None:  # closed-loop robots: the effects act through the closure (jaxcal/gap/closed.py)
+        from jaxcal.gap.closed import closed_model
+
+        return closed_model(robot, device)
     return _cached_model(robot, device)
 
 
@@ -251,6 +253,10 @@ def gravity_loads(model: GapModel, F, o):
 
 def tool_pose(model: GapModel, x, q, cov):
     """Tip pose (R, p) in the robot base frame with the robot-side effects, for one sample."""
+    if model.robot.closure is not None:
+        from jaxcal.gap import closed
+
+        return closed.tool_pose(model, x, q, cov)
     robot = model.robot
     nr, ng = robot.n_params, model.n_geometry
     a, e = x[:nr], x[ng:]

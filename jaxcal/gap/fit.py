@@ -135,6 +135,10 @@ def predict(x, q, cov, *, model):
 @functools.partial(jax.jit, static_argnames=("model",))
 def loads_and_tips(x, q, cov, *, model):
     """Gravity load about each joint axis (N, n; kg m, the model's masses) and the tip position (N, 3)."""
+    if model.robot.closure is not None:
+        from jaxcal.gap.closed import loads_and_tips as closed_loads
+
+        return closed_loads(model, x, q)
     from jaxcal.gap.effects import gravity_loads, joint_axes
     from jaxcal.kin.model import frames_single, joint_variables
 
@@ -151,6 +155,8 @@ def loads_and_tips(x, q, cov, *, model):
 @functools.partial(jax.jit, static_argnames=("model",))
 def moment_norms(x, q, *, model):
     """|M_j| (N, n; kg m): norm of the gravity moment about each joint of every sample (compliance and bending act on it)."""
+    if model.robot.closure is not None:  # closed loops: compliance acts on the actuator load tau_j (jaxcal/gap/closed.py)
+        return jnp.abs(loads_and_tips(x, q, None, model=model)[0])
     from jaxcal.gap.effects import gravity_loads, joint_axes
     from jaxcal.kin.model import frames_single, joint_variables
 
