@@ -34,20 +34,12 @@ import jaxcal as jc
 from jaxcal.fit import uncertainty as un
 from jaxcal.fit.identify import residual_weights, residuals
 from jaxcal.io_atomic import write_json_atomic
+from jaxcal.robots.builtin import FOURBAR3D_TABLE_4_2B
 
 OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
 N_POSES = 30
 CHUNK = 32  # one compiled Monte Carlo kernel for every point with N_POSES poses
 
-# Table 4.2b, the thesis' perturbed parameter set (rows a1 a2 a3 d1 d2 d3 of bodies 1..6)
-TABLE_4_2B = [
-    [0.0095, 0.0046, 0.0020, 0.0092, 0.0041, 0.0000],
-    [0.0023, 0.0002, 0.0000, 0.0074, 1.0089, 0.0000],
-    [0.0061, 0.0082, 0.0000, 1.0018, 0.0006, 0.0000],
-    [-1.5659, 0.0044, 0.0000, 0.0041, 0.0035, 0.0000],
-    [1.5797, 0.0062, 0.0000, 0.0094, 1.0081, 0.0000],
-    [-1.5632, 0.0079, 0.0000, -0.9908, 0.0001, 0.0060],
-]
 # Table 4.2c: (s_m, s_theta) variances of the ten runs. The OCR lost the mantissa of runs 4 and 9
 # ("x10-9"); 1e-9 is taken.
 TABLE_4_2C = [(1e-4, 0.0), (2.5e-6, 0.0), (2.5e-8, 0.0), (1e-9, 0.0), (2.5e-11, 0.0),
@@ -65,7 +57,7 @@ THESIS = {  # the numbers seed 004 §4.3.1 prints for run 3 (26 parameters, one 
 
 def table_4_2b(rb):
     """Table 4.2b as a parameter vector of `rb` (entries named j<body>.<field>)."""
-    vals = {f"j{i}.{f}": v for i, row in enumerate(TABLE_4_2B, 1) for f, v in zip(("a1", "a2", "a3", "d1", "d2", "d3"), row)}
+    vals = {f"j{i}.{f}": v for i, row in enumerate(FOURBAR3D_TABLE_4_2B, 1) for f, v in zip(("a1", "a2", "a3", "d1", "d2", "d3"), row)}
     return np.array([vals[n] for n in rb.names])
 
 
@@ -138,15 +130,6 @@ def actuator_sweep(rb, a_true, q, runs, levels):
     for vm in (0.0, 2.5e-7):
         traces[vm] = [float(np.median(run_point(rb, a_true, q, vm, vq, runs, seed=50 + i)[1])) for i, vq in enumerate(levels)]
         print(f"Figure 4.13, s_m = {vm:g}: " + ", ".join(f"{v:.3e}" for v in traces[vm]), flush=True)
-    return traces
-
-
-def measurement_sweep(rb, a_true, q, runs, levels):
-    """Figure 4.12: residual norm vs measurement noise, traces s_theta = 0 and s_theta = 1e-6."""
-    traces = {}
-    for vq in (0.0, 1e-6):
-        traces[vq] = [float(np.median(run_point(rb, a_true, q, vm, vq, runs, seed=80 + i)[1])) for i, vm in enumerate(levels)]
-        print(f"Figure 4.12, s_theta = {vq:g}: " + ", ".join(f"{v:.3e}" for v in traces[vq]), flush=True)
     return traces
 
 

@@ -10,16 +10,8 @@ from conftest import central_fd, rel_err
 
 import jaxcal as jc
 from jaxcal.closure import FAIL_OFFSET, closed, closure_residual, solve, tree_frames
+from jaxcal.robots.builtin import FOURBAR3D_TABLE_4_2B
 
-# Table 4.2b, the thesis' perturbed parameter set (rows a1 a2 a3 d1 d2 d3 of bodies 1..6).
-TABLE_4_2B = [
-    [0.0095, 0.0046, 0.0020, 0.0092, 0.0041, 0.0000],
-    [0.0023, 0.0002, 0.0000, 0.0074, 1.0089, 0.0000],
-    [0.0061, 0.0082, 0.0000, 1.0018, 0.0006, 0.0000],
-    [-1.5659, 0.0044, 0.0000, 0.0041, 0.0035, 0.0000],
-    [1.5797, 0.0062, 0.0000, 0.0094, 1.0081, 0.0000],
-    [-1.5632, 0.0079, 0.0000, -0.9908, 0.0001, 0.0060],
-]
 FREE_OFFSETS = ("j3.a3", "j4.a3", "j5.a3")  # a3 of the free joints: the joint variables themselves
 
 
@@ -29,7 +21,7 @@ def fb3():
 
 
 def table_4_2b(rb):
-    vals = {f"j{i}.{f}": v for i, row in enumerate(TABLE_4_2B, 1) for f, v in zip(("a1", "a2", "a3", "d1", "d2", "d3"), row)}
+    vals = {f"j{i}.{f}": v for i, row in enumerate(FOURBAR3D_TABLE_4_2B, 1) for f, v in zip(("a1", "a2", "a3", "d1", "d2", "d3"), row)}
     return jnp.array([vals[n] for n in rb.names])
 
 

@@ -76,6 +76,18 @@ def fourbar2d():
                         home=[np.pi / 2 + 0.4], q_min=[np.pi / 2 - 0.6], q_max=[np.pi / 2 + 1.2])
 
 
+# Table 4.2b of seed 004: the thesis' perturbed 3-D four-bar (rows a1 a2 a3 d1 d2 d3 of bodies 1..6), the
+# "true" geometry of its simulations (used by tests/test_closure_3d.py and benchmarks/montecarlo_fourbar3d.py).
+FOURBAR3D_TABLE_4_2B = (
+    (0.0095, 0.0046, 0.0020, 0.0092, 0.0041, 0.0000),
+    (0.0023, 0.0002, 0.0000, 0.0074, 1.0089, 0.0000),
+    (0.0061, 0.0082, 0.0000, 1.0018, 0.0006, 0.0000),
+    (-1.5659, 0.0044, 0.0000, 0.0041, 0.0035, 0.0000),
+    (1.5797, 0.0062, 0.0000, 0.0094, 1.0081, 0.0000),
+    (-1.5632, 0.0079, 0.0000, -0.9908, 0.0001, 0.0060),
+)
+
+
 @register("fourbar3d")
 @functools.cache
 def fourbar3d():
