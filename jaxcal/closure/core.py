@@ -32,6 +32,7 @@ import optimistix as optx
 from jaxcal.kin.model import Robot, _batched, frames_single, joint_variables
 from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import quat_from_matrix
+from jaxcal.linalg import solve_small
 
 CLOSURE_KINDS = ("full", "position")
 SOLVERS = ("lm", "newton")
@@ -179,7 +180,7 @@ def newton_lm(fn, start, max_steps: int, tol: float):
         th, norm, mu, k = state
         v = fn(th)
         V = jax.jacfwd(fn)(th)
-        step = -jnp.linalg.solve(V.T @ V + mu * eye, V.T @ v)
+        step = -solve_small(V.T @ V + mu * eye, V.T @ v)
         trial = th + step
         trial_norm = jnp.linalg.norm(fn(trial))
         better = jnp.isfinite(trial_norm) & (trial_norm < norm)
@@ -221,7 +222,7 @@ def _closed_theta_jvp(robot, primals, tangents):
     theta, steps = _lm_solve(robot, a, qj, start)
     V = jax.jacfwd(lambda th: closure_residual(robot, a, qj, th))(theta)
     _, dv = jax.jvp(lambda a_, q_: closure_residual(robot, a_, q_, theta), (a, qj), (da, dqj))
-    dtheta = -jnp.linalg.solve(V.T @ V, V.T @ dv)
+    dtheta = -solve_small(V.T @ V, V.T @ dv)
     dtheta = jnp.where(jnp.all(jnp.isfinite(dtheta)), dtheta, 0.0)  # singular V: no closure, flagged anyway
     return (theta, steps), (dtheta, np.zeros(np.shape(steps), dtype=jax.dtypes.float0))
 

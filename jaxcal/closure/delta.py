@@ -39,6 +39,7 @@ from jaxcal.closure.core import FAIL_OFFSET, Closure, ClosureSolution
 from jaxcal.kin.model import joint_variables
 from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import rot_x, rot_y
+from jaxcal.linalg import solve_small
 
 CLOSURE_TOL = 1e-10  # closure residual norm above which a sample is infeasible (seed 004 §4.3)
 NEWTON_STEPS = 8
@@ -258,7 +259,7 @@ def _newton(robot, st, fixed, x0):
     def step(carry):
         x, _, i = carry
         F, J = _residual_and_jacobian(robot, st, fixed, x)
-        return x - jnp.linalg.solve(J, F), jnp.max(jnp.abs(F)), i + 1
+        return x - solve_small(J, F), jnp.max(jnp.abs(F)), i + 1
 
     def more(carry):
         _, err, i = carry
@@ -322,7 +323,7 @@ def solve_single(robot, a, q):
     finite = jnp.all(jnp.isfinite(x_star))
     x_star = jnp.where(finite, x_star, jnp.where(jnp.all(jnp.isfinite(x0)), x0, 0.0))
     F_star, J = _residual_and_jacobian(robot, st_sg, fixed_sg, x_star)
-    x = x_star - jnp.linalg.solve(J, _sphere_residual(robot, st, fixed, x_star))  # zero step; carries dx/d(a, q)
+    x = x_star - solve_small(J, _sphere_residual(robot, st, fixed, x_star))  # zero step; carries dx/d(a, q)
     nacelle = _nacelle(robot, st, fixed, x)
     rods = _rod_angles(robot, st, fixed, nacelle)
     err = jnp.where(finite, jnp.linalg.norm(F_star), jnp.inf)
