@@ -430,13 +430,17 @@ def main(argv=None):
     ap.add_argument("--max-steps", type=int, default=None, help="LM steps per fit in diagnose (default: diagnose's)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "gap_blind"))
     args = ap.parse_args(argv)
+    settings_path = os.path.join(args.folder, "settings.json")  # how the cases were made and diagnosed, for the scorer
     if args.stage in ("all", "generate") and not os.path.exists(os.path.join(args.folder, "labels.json")):
         generate(args.folder, args.cases, args.seed, tuple(args.robots.split(",")))
+        _write_json(settings_path, {"cases_generated": args.cases, "seed": args.seed, "robots": args.robots})
     if args.stage in ("all", "diagnose"):
         diagnose_all(args.folder, args.limit_s, args.shard, args.predictions, args.max_steps)
+        settings = json.load(open(settings_path)) if os.path.exists(settings_path) else {}
+        _write_json(settings_path, dict(settings, max_steps=args.max_steps))
     if args.stage in ("all", "score"):
         res = score(args.folder)
-        res["settings"] = {"cases_generated": args.cases, "seed": args.seed, "robots": args.robots, "max_steps": args.max_steps}
+        res["settings"] = json.load(open(settings_path)) if os.path.exists(settings_path) else {}
         os.makedirs(os.path.dirname(args.out), exist_ok=True)
         _write_json(args.out + ".json", res)
         md = table(res)
