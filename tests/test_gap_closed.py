@@ -195,14 +195,14 @@ def test_injected_effect_is_diagnosed_and_recovered_on_the_delta(delta, model, e
 
 
 @pytest.mark.slow
-def test_thermal_on_the_delta_is_selected_and_recovered(delta, model):
-    """Thermal expansion is selected first, kappa recovered and the gap closed. Known limit: the verdict is
-    'unexplained', not 'thermal': the out-of-fold residual still correlates with temperature (share 7 %,
-    p 1e-5) after the refit, whose LM stops at its step limit on the Delta; cause not isolated (docs/gap.md)."""
+def test_thermal_on_the_delta_is_named_and_recovered(delta, model):
+    """Thermal expansion is named, kappa recovered within 5 % and the gap closed. (Until the baseline started
+    from the registered device frame, 3.7 cm off here, the verdict was 'unexplained': structure correlated
+    with temperature was left after the refit.)"""
     data, truth = _case(delta, model, {"gap.thermal": 1.0})
     d = jc.gap.diagnose(delta, data)
     assert d.selected and d.selected[0] == ("thermal", ()), d.report()
-    assert d.verdict in ("thermal", "unexplained") and d.shrink > 0.8, d.report()
+    assert d.verdict == "thermal" and d.shrink > 0.8, d.report()
     assert abs(d.parameters["gap.thermal"] - truth["gap.thermal"]) < 0.05 * abs(truth["gap.thermal"])
 
 
