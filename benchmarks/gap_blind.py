@@ -334,7 +334,7 @@ def diagnose_all(folder, limit_s=None, shard=None, out_path=None, max_steps=None
         preds[key] = {"verdict": d.verdict, "joints": list(d.joints), "shrink": d.shrink, "before": d.heldout_rms_before,
                       "after": d.heldout_rms_after, "floor": d.noise_floor, "structure_p": d.structure_p,
                       "selected": [[e, list(j)] for e, j in d.selected], "wall_s": wall,
-                      "parameters": d.parameters}
+                      "parameters": d.parameters, "diverged": d.diverged}
         _write_json(out_path, preds)
         print(f"{key} {d.robot_name:<9} {d.verdict:<13} {','.join(d.joints):<8} {wall:6.1f} s", flush=True)
     return preds
