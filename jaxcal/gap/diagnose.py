@@ -55,6 +55,7 @@ MAX_EFFECT_COLUMNS = 18  # effect columns the selected model may add (max_effect
 # Closed loops get no prior: their base set (CLOSED_BASE_TOL) is the conditioning control, and on the Delta the
 # prior kept the geometry from moving with the effect (backlash refit 0.061 mm held out vs 0.039 mm linearised).
 PRIOR_MU = 1.0
+CLOSED_BASELINE_STEPS = 40
 BOX = 0.1  # sane box of a refit around its baseline: 0.1 m or rad of geometry or of effect deflection, 10 % of a gain
 DIVERGED_RATIO = 3.0  # a refit whose (held-out) RMS exceeds this multiple of the baseline's diverged
 
@@ -387,13 +388,13 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
         out[:len(cols)] = np.where(np.asarray(cols) < model.n_geometry, mu, 0.0)
         return out
 
-    def solve(x_refs, cols, sig, z_starts=None, mu=0.0):
+    def solve(x_refs, cols, sig, z_starts=None, mu=0.0, steps=max_steps):
         S = jnp.asarray(gf.selection(cols, P, scale, K_active))
         z_starts = np.zeros((folds + 1, K_active)) if z_starts is None else z_starts
         args = dict(ref=jnp.asarray(x_refs), w=jnp.asarray(fold_weights(sig)), S=S, mu=jnp.asarray(prior_weights(cols, mu)),
                     q=qj, y=yj, cov=cj)
-        xs, ok, steps = gf.solve_folds(jnp.asarray(x_refs), jnp.asarray(z_starts), args, model=model, max_steps=max_steps)
-        return np.array(xs), np.asarray(ok), int(np.max(steps))
+        xs, ok, n_steps = gf.solve_folds(jnp.asarray(x_refs), jnp.asarray(z_starts), args, model=model, max_steps=steps)
+        return np.array(xs), np.asarray(ok), int(np.max(n_steps))
 
     geo_free = np.concatenate([robot.free_mask, device.free_mask, np.zeros(len(model.effect_names), bool)])
     x_start = _registered_start(model, x_nom, qj, cj, data.y, n) if robot.closure is not None else x_nom
@@ -407,7 +408,8 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
     c_base = None if robot.closure is None else CLOSED_BASE_TOL / np.finfo(float).eps
     G = np.sort(cand_geo[base_set(Jf[:, cand_geo], prio[cand_geo], c=c_base).independent])
     K_active = gf.active_size(len(G) + MAX_EFFECT_COLUMNS)
-    xs, ok_base, steps_base = solve(x0s, G, comp_sigma)
+    base_steps = max_steps if robot.closure is None else min(max_steps, CLOSED_BASELINE_STEPS)
+    xs, ok_base, steps_base = solve(x0s, G, comp_sigma, steps=base_steps)
     if device.kind == "pose":  # weight position and orientation by their residual RMS at the baseline
         rb = np.asarray(gf.residual_batch(jnp.asarray(xs[folds:]), qj, yj, cj, jnp.ones((npad, m)), model=model))[0][valid]
         comp_sigma = np.array([np.sqrt(np.mean(rb[:, :3] ** 2))] * 3 + [np.sqrt(np.mean(rb[:, 3:] ** 2))] * 3)
