@@ -3,7 +3,8 @@
 Method (DESIGN "The sim-to-real gap diagnosis"; issue 7):
 1. Baseline: geometry (base set, seed 001 App. III) and device frame fitted by LM on each of k
    training folds and on all data (one vmapped solve; folds keep repeated poses together). Closed
-   loops start from the nominal geometry with the device frame registered rigidly onto the readings.
+   loops start from the nominal geometry with the device frame registered rigidly onto the readings,
+   and their baseline LM stops after CLOSED_BASELINE_STEPS (early stopping: see docs/gap.md).
 2. Which: every candidate effect, and every joint-restricted variant of a joint effect, is fitted
    jointly with the geometry by a Gauss-Newton step from each fold's baseline (effects are small
    next to the geometry, so one step is the joint least-squares fit to first order). Columns the
@@ -55,6 +56,8 @@ MAX_EFFECT_COLUMNS = 18  # effect columns the selected model may add (max_effect
 # Closed loops get no prior: their base set (CLOSED_BASE_TOL) is the conditioning control, and on the Delta the
 # prior kept the geometry from moving with the effect (backlash refit 0.061 mm held out vs 0.039 mm linearised).
 PRIOR_MU = 1.0
+# Closed loops: the baseline LM stops after this many steps. Beyond ~40 it walked, on the Delta, along weakly
+# determined geometric directions into geometries where held-out samples no longer close (5 of 100 blind cases).
 CLOSED_BASELINE_STEPS = 40
 BOX = 0.1  # sane box of a refit around its baseline: 0.1 m or rad of geometry or of effect deflection, 10 % of a gain
 DIVERGED_RATIO = 3.0  # a refit whose (held-out) RMS exceeds this multiple of the baseline's diverged
