@@ -59,7 +59,7 @@ PRIOR_MU = 1.0
 # Closed loops: the baseline LM stops after this many steps. Beyond ~40 it walked, on the Delta, along weakly
 # determined geometric directions into geometries where held-out samples no longer close (5 of 100 blind cases).
 CLOSED_BASELINE_STEPS = 40
-BOX = 0.1  # sane box of a refit around its baseline: 0.1 m or rad of geometry or of effect deflection, 10 % of a gain
+BOX = 0.1  # sane box of a refit around its baseline or nominal start: 0.1 m or rad of geometry or effect deflection, 10 % of a gain
 DIVERGED_RATIO = 3.0  # a refit whose (held-out) RMS exceeds this multiple of the baseline's diverged
 
 
