@@ -136,34 +136,6 @@ def test_effect_gradients_through_the_closure_match_central_differences(delta, m
         assert rel_err(J[:, k], J_fd[:, k]) < 1e-5, model.names[c]
 
 
-def test_registered_start_recovers_the_device_frame(delta, model):
-    """The Delta's baseline starts from the nominal geometry with the device frame from rigid registration
-    (Kabsch): on noise-free readings of the nominal Delta through a frame 5 cm / 0.05 rad off, the registered
-    frame is the true one (1e-9 m, 1e-9 rad); a reflection in the data is not returned as a rotation."""
-    from jaxcal.gap.diagnose import _registered_start, rigid_registration
-    from jaxcal.gap.fit import predict
-
-    rng = np.random.default_rng(5)
-    R, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-    R *= np.sign(np.linalg.det(R))
-    P = rng.normal(size=(20, 3))
-    R_fit, t_fit = rigid_registration(P, (P - [1.0, 2.0, 3.0]) @ R)  # p = R y + t with y = R^T (p - t)
-    assert np.allclose(R_fit, R, atol=1e-12) and np.allclose(t_fit, [1.0, 2.0, 3.0], atol=1e-12)
-    R_m, _ = rigid_registration(P, P * [1.0, 1.0, -1.0])
-    assert np.linalg.det(R_m) > 0
-
-    n = 16
-    q = delta_workspace(n, seed=9)
-    cov, _ = covariate_matrix(model, {}, n)
-    frame = [0.05, -0.03, 0.02, 0.05, -0.02, 0.03, 0.0, 0.0, 0.0]  # dev (x, y, z, rx, ry, rz), tool offset
-    x_true = np.concatenate([delta.nominal_np, frame, np.zeros(len(model.effect_names))])
-    y = np.asarray(predict(jnp.asarray(x_true), jnp.asarray(q), jnp.asarray(cov), model=model))
-    x_start = _registered_start(model, model.nominal(), jnp.asarray(q), jnp.asarray(cov), y, n)
-    ng0 = delta.n_params
-    assert np.max(np.abs(x_start[ng0:ng0 + 6] - x_true[ng0:ng0 + 6])) < 1e-9
-    assert np.array_equal(x_start[:ng0], delta.nominal_np) and not np.any(x_start[ng0 + 6:])
-
-
 # ---- injected effects recovered by the diagnosis (slow: the Delta diagnosis compiles its solvers) ----------
 def _case(delta, model, effects, times_noise=8.0, n=150, seed=0):
     q = delta_workspace(n, seed=seed + 1)

@@ -1,9 +1,10 @@
-"""Identification: stacked weighted residual, autodiff Jacobian, optimistix solvers.
+"""`identify`: calibration of a robot and its measurement device from a dataset, and its `FitResult`.
 
-The unknowns are the free robot parameters and the free device parameters (device frame and
-marker offset: unknown by default). For a rank-deficient problem only the base set (seed 001
-Appendix III, `jaxcal.fit.base`) is estimated and the other columns stay at their prior values;
-they are reported as undetermined. Options from seed 004 §3.3: bounds as a penalty, the bias
+`identify` builds a `jaxcal.fit.core.Problem` from the dataset and its options and solves it through
+`core.calibrate`, the path every client shares. The unknowns are the free robot parameters and the
+free device parameters (device frame and marker offset: unknown by default). For a rank-deficient
+problem only the base set (seed 001 Appendix III, `jaxcal.fit.base`) is estimated and the other
+columns stay at their prior values; they are reported as undetermined. Options from seed 004 §3.3: bounds as a penalty, the bias
 term mu (a - a0) with decreasing mu (eq 3.12), and multi-start.
 """
 
@@ -12,46 +13,20 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
-import warnings
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
-import optimistix as optx
 
-from jaxcal.fit.base import base_set
+from jaxcal.fit import core
 from jaxcal.fit.data import Dataset
 from jaxcal.forward import forward
 from jaxcal.kin.model import Robot
 from jaxcal.measure.devices import Device
 
-SOLVERS = ("lm", "lm_normal", "gn", "gn_normal", "dogleg", "bfgs")
-
-
-def _solver(name: str, rtol: float, atol: float):
-    if name == "lm":
-        return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-    if name == "lm_normal":  # normal equations by Cholesky: faster for tall Jacobians, less robust (JAX_NOTES 4)
-        return optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
-    if name == "gn":
-        return optx.GaussNewton(rtol=rtol, atol=atol)
-    if name == "gn_normal":
-        return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky()))
-    if name == "dogleg":
-        return optx.Dogleg(rtol=rtol, atol=atol)
-    if name == "bfgs":
-        return optx.BFGS(rtol=rtol, atol=atol)
-    raise ValueError(f"unknown solver {name!r}; expected one of {SOLVERS}")
-
-
-def residuals(robot: Robot, device: Device, a_full, q, y, w):
-    """Weighted residuals (N, m) of all samples: w * (measured - predicted)."""
-    nr = robot.n_params
-    tips = forward(robot, a_full[:nr], q)
-    pred = jax.vmap(device.read, (0, None))(tips, a_full[nr:])
-    return jax.vmap(device.residual)(pred, y) * w
+SOLVERS = tuple(core.SOLVERS)
+residuals = core.residuals
 
 
 def residual_weights(device: Device, sigma_position=1e-3, sigma_orientation=1e-3):
@@ -67,75 +42,12 @@ def residual_weights(device: Device, sigma_position=1e-3, sigma_orientation=1e-3
     return jnp.full(3, 1.0 / sigma_orientation)
 
 
-def _stacked(robot, device, x, args):
-    """Residual of the full vector x: data, the bias term on estimated entries, the bound penalty,
-    and a pin (x - a_ref) on entries that are not estimated. Pinning instead of slicing keeps one
-    shape for every stage (frames-only fit, base-set fit, bias stages), so one compile serves all.
-    """
-    m = args["mask"]
-    a_full = jnp.where(m > 0, x, args["a_ref"])
-    r = residuals(robot, device, a_full, args["q"], args["y"], args["w"]).reshape(-1)
-    scaled = (x - args["a_ref"]) / args["x_scale"]
-    bias = jnp.sqrt(args["mu"]) * m * scaled
-    pin = (1.0 - m) * scaled
-    over = jnp.maximum(x - args["ub"], 0.0) + jnp.maximum(args["lb"] - x, 0.0)
-    return jnp.concatenate([r, bias + pin, 1e6 * m * over / args["x_scale"]])
-
-
-@functools.partial(jax.jit, static_argnames=("robot", "device", "solver", "max_steps", "rtol", "atol"))
-def _solve(x0, args, *, robot, device, solver, max_steps, rtol, atol):
-    fn = functools.partial(_stacked, robot, device)
-    sol = optx.least_squares(fn, _solver(solver, rtol, atol), x0, args, max_steps=max_steps, throw=False)
-    cost = jnp.sum(fn(sol.value, args) ** 2)
-    return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"], cost
-
-
-@functools.partial(jax.jit, static_argnames=("robot", "device", "solver", "max_steps", "rtol", "atol"))
-def _solve_many(x0s, args, *, robot, device, solver, max_steps, rtol, atol):
-    one = functools.partial(_solve.__wrapped__, robot=robot, device=device, solver=solver,
-                            max_steps=max_steps, rtol=rtol, atol=atol)
-    return jax.vmap(one, (0, None))(x0s, args)
-
-
-_EXECUTABLES: dict = {}
-
-
-def _executable(fn, cfg, x0, args):
-    """Compiled `fn` for these static settings and argument shapes, and the seconds spent compiling
-    (0 when it was compiled before in this process). Robots and devices hash by identity."""
-    shapes = jax.tree_util.tree_map(lambda v: (jnp.shape(v), jnp.result_type(v)), (x0, args))
-    key = (fn, tuple(sorted(cfg.items(), key=lambda kv: kv[0])), str(shapes))
-    if key in _EXECUTABLES:
-        return _EXECUTABLES[key], 0.0
-    t = time.perf_counter()
-    exe = fn.lower(x0, args, **cfg).compile()
-    _EXECUTABLES[key] = exe
-    return exe, time.perf_counter() - t
-
-
-@functools.partial(jax.jit, static_argnums=(0, 1))
-def _rms_residual(robot, device, a_full, q, y, w):
-    return jnp.sqrt(jnp.mean(residuals(robot, device, a_full, q, y, w) ** 2))
-
-
-@functools.partial(jax.jit, static_argnums=(0, 1))
-def _errors(robot, device, a_full, q, y):
-    """Unweighted per-sample (position, orientation) errors."""
-    r = residuals(robot, device, a_full, q, y, residual_weights(device, 1.0, 1.0))
-    return device.split_errors(r)
-
-
-@functools.partial(jax.jit, static_argnums=(0, 1))
-def _jacobian(robot, device, a_full, q, y, w):
-    return jax.jacfwd(lambda a: residuals(robot, device, a, q, y, w).reshape(-1))(a_full)
-
-
-@functools.cache
-def _history_fns(robot, device, solver, rtol, atol):
-    """Jitted (init, step, done, cost) of one solver, built once per robot/device/solver: the data
+@functools.lru_cache(maxsize=16)
+def _history_fns(robot, device, settings: core.Settings):
+    """Jitted (init, step, done, cost) of one solver, built once per robot/device/settings: the data
     and weights are arguments, so every later call of `identify(history=True)` reuses the compile."""
-    slv = _solver(solver, rtol, atol)
-    fn = lambda x, a: (_stacked(robot, device, x, a), None)  # noqa: E731
+    slv = core.make_solver(settings.solver, settings.rtol, settings.atol)
+    fn = lambda x, a: (core.stacked(robot, device, x, a), None)  # noqa: E731
 
     def init(x, args):
         f_struct = jax.eval_shape(lambda z: fn(z, args)[0], x)
@@ -147,12 +59,13 @@ def _history_fns(robot, device, solver, rtol, atol):
     return init, step, done, cost
 
 
-def _history(robot, device, x0, args, solver, max_steps, rtol, atol):
+def _history(problem: core.Problem, x0, args, settings: core.Settings):
     """Cost after each solver step (for convergence plots), by stepping optimistix by hand."""
-    init, step, done, cost = _history_fns(robot, device, solver, rtol, atol)
+    init, step, done, cost = _history_fns(problem.robot, problem.device, settings)
+    x0 = jnp.asarray(x0)
     state = init(x0, args)
     x, hist = x0, [float(cost(x0, args))]
-    for _ in range(max_steps):
+    for _ in range(settings.max_steps):
         x, state = step(x, state, args)
         hist.append(float(cost(x, args)))
         if bool(done(x, state, args)):
@@ -264,32 +177,6 @@ class FitResult:
         return "\n".join(lines)
 
 
-def _drop_unclosed(robot: Robot, a0, data: Dataset, sample_weights):
-    """Samples of a closed mechanism whose loops do not close at the start `a0` carry no usable
-    reading (seed 004 §4.3): they are dropped with a warning naming them, and their indices
-    (in the given dataset) are returned so the caller can report them."""
-    if robot.closure is None:
-        return data, sample_weights, ()
-    from jaxcal.closure import closed
-
-    ok = np.asarray(closed(robot, a0, jnp.asarray(data.q)))
-    if ok.all():
-        return data, sample_weights, ()
-    bad = tuple(int(i) for i in np.flatnonzero(~ok))
-    if not ok.any():
-        raise ValueError(f"no sample of {robot.name!r} closes at the starting parameters (samples 0..{len(ok) - 1})")
-    warnings.warn(f"{robot.name}: {len(bad)} sample(s) do not close at the starting parameters and are left out: "
-                  f"{list(bad)[:20]}{' ...' if len(bad) > 20 else ''}", stacklevel=3)
-    keep = np.flatnonzero(ok)
-    sw = None if sample_weights is None else np.asarray(sample_weights, float)[keep]
-    return data.subset(keep), sw, bad
-
-
-def _x_scale(units):
-    """Typical size of a parameter change: 0.01 (m or rad) for geometry, 1 for gains and scales."""
-    return np.array([1.0 if u in ("gain", "scale") else 0.01 for u in units])
-
-
 def _select(names, full_names, default_mask):
     if names is None:
         return np.asarray(default_mask, bool)
@@ -300,6 +187,23 @@ def _select(names, full_names, default_mask):
     return np.isin(np.array(full_names), names)
 
 
+def _device_free(device: Device, known) -> np.ndarray:
+    free = device.free_mask.copy()
+    for k in known:
+        free &= np.array([not (n == k or n.startswith(k + ".")) for n in device.names])
+    return free
+
+
+def _rms_mm(problem: core.Problem, a_full) -> tuple[float | None, float | None]:
+    """(position RMS mm, orientation RMS mrad) of the unweighted per-sample errors over the used samples."""
+    unit = residual_weights(problem.device, 1.0, 1.0)
+    used = problem.used
+    r = core.weighted_residuals(problem.robot, problem.device, a_full, problem.q[used], problem.y[used], unit)
+    pe, oe = problem.device.split_errors(jnp.asarray(r))
+    rms = lambda e: None if e is None else float(np.sqrt(np.mean(np.asarray(e) ** 2)) * 1e3)  # noqa: E731
+    return rms(pe), rms(oe)
+
+
 def identify(
     robot: Robot,
     data: Dataset,
@@ -308,7 +212,7 @@ def identify(
     known=(),
     a0=None,
     device_params=None,
-    solver: str = "lm",
+    solver="lm",
     base: bool = True,
     bias=None,
     bounds=None,
@@ -321,152 +225,75 @@ def identify(
     atol: float = 1e-10,
     history: bool = False,
     sample_weights=None,
+    base_tol: float | None = None,
 ) -> FitResult:
-    """Identify robot and device parameters from a dataset.
+    """Identify robot and device parameters from a dataset, through the calibration core (`jaxcal.fit.core`).
 
     free: robot parameter names to estimate (default: the robot's free mask).
     known: device parameter prefixes or names treated as known ("dev", "tool", "dev.x", ...).
-    a0, device_params: starting/prior values (default nominal).
-    solver: "lm" (default; QR linear solves), "lm_normal" (LM on the normal equations by Cholesky),
-    "gn", "gn_normal", "dogleg" or "bfgs" (optimistix).
+    a0, device_params: starting/prior values (default nominal; the device frame is registered onto the
+    readings when that lowers the cost, then every free device parameter is fitted: `core.start`).
+    solver: a name of `core.SOLVERS` ("lm" default, "lm_normal", "gn", "gn_normal", "dogleg", "bfgs") or an
+    optimistix least-squares solver object.
     base: estimate only the base set of the free columns (seed 001 App. III); others stay at a0.
     bias: mu, or a decreasing sequence of mu, for the term mu ||(x - x0)/scale||^2 (seed 004 eq 3.12).
     bounds: {name: (low, high)} enforced by a penalty (seed 004 §3.3).
     multistart: number of extra random starts (vmapped), spread 1 cm / 0.01 rad around a0.
     sigma_position, sigma_orientation: residual weights 1/sigma (m, rad).
-    sample_weights: optional (N,) extra weight per sample (robust re-weighting, outlier removal).
+    sample_weights: optional (N,) extra weight per sample (0 leaves a sample out exactly).
+    base_tol: QR pivot threshold of the base set relative to the largest (default: seed 001's n eps, 1e-10 for
+    closed loops).
     """
     t_start = time.perf_counter()
     device = data.device
     nr = robot.n_params
     if data.q.shape[1] != robot.n_inputs:
         raise ValueError(f"data has {data.q.shape[1]} joint columns, robot {robot.name!r} has {robot.n_inputs} inputs")
-    if solver not in SOLVERS:
-        raise ValueError(f"unknown solver {solver!r}; expected one of {SOLVERS}")
+    core.make_solver(solver, rtol, atol)  # unknown names fail before any work
     names = tuple(robot.names) + tuple(device.names)
     a0 = robot.nominal if a0 is None else jnp.asarray(a0, dtype=jnp.float64)
-    data, sample_weights, unclosed = _drop_unclosed(robot, a0, data, sample_weights)
     d0 = device.nominal if device_params is None else jnp.asarray(device_params, dtype=jnp.float64)
-    a_ref = jnp.concatenate([a0, d0])
-    robot_free = _select(free, robot.names, robot.free_mask)
-    dev_free = device.free_mask.copy()
-    for k in known:
-        dev_free &= np.array([not (n == k or n.startswith(k + ".")) for n in device.names])
-    free_mask = np.concatenate([robot_free, dev_free])
-    priority = np.concatenate([robot.priority, device.priority])
-    units = tuple(robot.units) + tuple(device.units)
+    closes = core.drop_unclosed(robot, a0, data.q)
+    unclosed = tuple(int(i) for i in np.flatnonzero(~closes))
+    sw = np.ones(len(data)) if sample_weights is None else np.asarray(sample_weights, float)
+    if sw.shape != (len(data),) or not np.all(np.isfinite(sw)) or np.any(sw < 0):
+        raise ValueError(f"sample_weights must be {len(data)} finite non-negative numbers")
+    keep = np.flatnonzero(closes)
+    data = data.subset(keep) if unclosed else data
+    free_mask = np.concatenate([_select(free, robot.names, robot.free_mask), _device_free(device, known)])
+    problem = core.make_problem(robot, device, data.q, data.y, weights=residual_weights(device, sigma_position, sigma_orientation),
+                                free=free_mask, a_ref=np.concatenate([np.asarray(a0), np.asarray(d0)]), bounds=bounds,
+                                sample_weights=sw[keep] if sample_weights is not None else None)
+    settings = core.Settings(solver, max_steps, rtol, atol)
+    cal = core.calibrate(problem, settings, base=base, bias=bias, multistart=multistart, seed=seed, base_tol=base_tol)
+    hist = _history(problem, cal.x_frames, problem.args(cal.estimated, 0.0, cal.x_frames), settings) if history else None
 
-    q, y = jnp.asarray(data.q), jnp.asarray(data.y)
-    w = residual_weights(device, sigma_position, sigma_orientation)
-    if sample_weights is not None:
-        sw = np.asarray(sample_weights, float)
-        if sw.shape != (len(data),) or not np.all(np.isfinite(sw)) or np.any(sw < 0):
-            raise ValueError(f"sample_weights must be {len(data)} finite non-negative numbers")
-        w = jnp.asarray(sw)[:, None] * w[None, :]
-    cfg = dict(robot=robot, device=device, solver=solver, max_steps=max_steps, rtol=rtol, atol=atol)
-
-    x_scale = jnp.asarray(_x_scale(units))
-    lb, ub = np.full(len(names), -np.inf), np.full(len(names), np.inf)
-    for n, (lo, hi) in (bounds or {}).items():
-        if n not in names:
-            raise KeyError(f"bounds: unknown parameter {n!r}")
-        lb[names.index(n)], ub[names.index(n)] = lo, hi
-
-    def make_args(idx, mu, ref):
-        """Solver arguments; the data weights are divided by the RMS weighted residual at `ref`,
-        which leaves the optimum unchanged but starts LM with an O(1) residual: optimistix's
-        trust region took 4 to 34 iterations on the same problem depending on that scale."""
-        mask = np.zeros(len(names))
-        mask[np.asarray(idx, int)] = 1.0
-        w_solve = w / jnp.maximum(_rms_residual(robot, device, ref, q, y, w), 1e-12)
-        return dict(a_ref=ref, mask=jnp.asarray(mask), q=q, y=y, w=w_solve, mu=jnp.float64(mu), x_scale=x_scale,
-                    lb=jnp.asarray(lb), ub=jnp.asarray(ub))
-
-    def rms_of(a_full):
-        pe, oe = _errors(robot, device, a_full, q, y)
-        pr = None if pe is None else float(jnp.sqrt(jnp.mean(pe**2)) * 1e3)
-        orr = None if oe is None else float(jnp.sqrt(jnp.mean(oe**2)) * 1e3)
-        return pr, orr
-
-    compile_s = 0.0
-
-    def solve(x0, args):
-        nonlocal compile_s
-        exe, dt = _executable(_solve, cfg, x0, args)
-        compile_s += dt
-        return exe(x0, args)
-
-    # 1. The fair "before": nominal robot, unknown device frame / marker fitted.
-    dev_idx = np.flatnonzero(dev_free) + nr
-    a_frames = a_ref
-    if dev_idx.size:
-        frames_args = make_args(dev_idx, 0.0, a_ref)
-        a_frames = jnp.where(frames_args["mask"] > 0, solve(a_ref, frames_args)[0], a_ref)
-    nominal_p, nominal_o = rms_of(a_ref)
-    before_p, before_o = rms_of(a_frames)
-
-    # 2. Base set of the free columns at the frames-fitted point.
-    J0 = np.asarray(_jacobian(robot, device, a_frames, q, y, w))
-    cand = np.flatnonzero(free_mask)
-    if base:
-        bs = base_set(J0[:, cand], priority[cand])
-        est_idx = np.sort(cand[bs.independent])
-        undetermined = tuple(names[i] for i in np.sort(cand[np.concatenate([bs.regrouped, bs.no_effect])]))
-        no_effect = tuple(names[i] for i in cand[bs.no_effect])
-        regrouped = tuple(names[i] for i in cand[bs.regrouped])
-    else:
-        est_idx, undetermined, no_effect, regrouped = cand, (), (), ()
-
-    # 3. Solve (bias stages, multi-start), always from the frames-fitted point as prior.
-    mus = [0.0] if bias is None else (list(bias) if np.ndim(bias) else [float(bias) * 10.0**-k for k in range(4)] + [0.0])
-    t_fit = time.perf_counter()
-    compile_before = compile_s
-    iterations, converged = 0, True
-    x = a_frames
-    for mu in mus:
-        args = make_args(est_idx, mu, a_frames)
-        if multistart:
-            rng = np.random.default_rng(seed)
-            spread = np.zeros((multistart, len(names)))
-            spread[:, est_idx] = np.asarray(x_scale)[est_idx] * rng.uniform(-1, 1, (multistart, len(est_idx)))
-            x0s = jnp.concatenate([x[None], x[None] + spread], axis=0)
-            many, dt = _executable(_solve_many, cfg, x0s, args)
-            compile_s += dt
-            xs, oks, steps, costs = many(x0s, args)
-            best = int(jnp.argmin(jnp.where(oks, costs, jnp.inf))) if bool(jnp.any(oks)) else int(jnp.argmin(costs))
-            x, ok, n_steps = xs[best], bool(oks[best]), int(steps[best])
-        else:
-            x, ok, n_steps, _ = solve(x, args)
-            ok, n_steps = bool(ok), int(n_steps)
-        iterations += n_steps
-        converged = converged and ok
-    jax.block_until_ready(x)
-    run_s = time.perf_counter() - t_fit - (compile_s - compile_before)
-    hist = _history(robot, device, a_frames, make_args(est_idx, 0.0, a_frames), solver, max_steps, rtol, atol) if history else None
-
-    est_mask = np.zeros(len(names), bool)
-    est_mask[est_idx] = True
-    a_full = jnp.where(jnp.asarray(est_mask), x, a_frames)
-    after_p, after_o = rms_of(a_full)
-    J = np.asarray(_jacobian(robot, device, a_full, q, y, w))
-    r_final = np.asarray(residuals(robot, device, a_full, q, y, w)).reshape(-1)
-    dof = max(r_final.size - len(est_idx), 1)
-    weak = _weak_directions(J[:, est_idx], [names[i] for i in est_idx])
+    nominal_p, nominal_o = _rms_mm(problem, problem.a_ref)
+    before_p, before_o = _rms_mm(problem, cal.x_frames)
+    after_p, after_o = _rms_mm(problem, cal.x)
+    est_idx = cal.estimated
+    Je = cal.J[:, est_idx]
+    r_final = core.weighted_residuals(robot, device, cal.x, problem.q, problem.y, problem.w).reshape(-1)
+    dof = max(int(np.sum(problem.w != 0)) - len(est_idx), 1)
     sigma_hat = float(np.sqrt(r_final @ r_final / dof))
-    covariance = sigma_hat**2 * np.linalg.pinv(J[:, est_idx].T @ J[:, est_idx]) if len(est_idx) else None
+    covariance = sigma_hat**2 * np.linalg.pinv(Je.T @ Je) if len(est_idx) else None
     pick = (lambda p, o: p if p is not None else o)
+    a_full = jnp.asarray(cal.x)
+    to_names = lambda idx: tuple(names[i] for i in idx)  # noqa: E731
     return FitResult(
         robot=robot, device=device, a=a_full[:nr], device_params=a_full[nr:], names=names,
         rms_before=pick(before_p, before_o), rms_after=pick(after_p, after_o),
         orientation_rms_before=before_o if before_p is not None else None,
         orientation_rms_after=after_o if after_p is not None else None,
-        rms_nominal=pick(nominal_p, nominal_o), iterations=iterations, converged=converged, jacobian=J,
-        estimated=tuple(names[i] for i in est_idx), undetermined=undetermined, no_effect=no_effect,
-        regrouped=regrouped, weak_directions=weak,
-        timings={"compile_s": compile_s, "run_s": run_s, "total_s": time.perf_counter() - t_start},
+        rms_nominal=pick(nominal_p, nominal_o), iterations=cal.iterations, converged=cal.converged, jacobian=cal.J,
+        estimated=to_names(est_idx), undetermined=to_names(cal.undetermined), no_effect=to_names(cal.no_effect),
+        regrouped=to_names(cal.regrouped), weak_directions=_weak_directions(Je, to_names(est_idx)),
+        timings={"compile_s": cal.compile_s, "run_s": cal.run_s, "total_s": time.perf_counter() - t_start},
         history=hist, sigma=sigma_hat, covariance=covariance,
-        info={"n_samples": len(data), "unclosed_samples": unclosed, "estimated_index": est_idx, "solver": solver,
-              "sigma_position": sigma_position, "sigma_orientation": sigma_orientation},
+        info={"n_samples": len(data), "unclosed_samples": unclosed, "estimated_index": est_idx,
+              "solver": solver if isinstance(solver, str) else type(solver).__name__,
+              "sigma_position": sigma_position, "sigma_orientation": sigma_orientation,
+              "frames_converged": cal.frames_converged, "registered_start": cal.registered},
     )
 
 

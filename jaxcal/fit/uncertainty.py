@@ -23,11 +23,13 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.stats
 
+from jaxcal.fit import core
 from jaxcal.fit.data import Dataset, _as_device
-from jaxcal.fit.identify import _jacobian, _solve, identify, residual_weights, residuals
+from jaxcal.fit.identify import identify, residual_weights, residuals
 from jaxcal.fit.simulate import simulate
 from jaxcal.forward import forward
 from jaxcal.kin.rotations import exp_so3
+from jaxcal.shard import over_devices
 
 
 # ------------------------------------------------------------------------------------------
@@ -54,7 +56,7 @@ def linear_covariance(fit, data: Dataset, noise=None):
     q, y = jnp.asarray(data.q), jnp.asarray(data.y)
     idx = info["estimated_index"]
     a_full = fit.a_full
-    J = np.asarray(_jacobian(robot, device, a_full, q, y, residual_weights(device, 1.0, 1.0)))[:, idx]
+    J = core.jacobian(robot, device, a_full, q, y, residual_weights(device, 1.0, 1.0))[:, idx]
     n, m = len(data), len(w_solver)
     Jb = J.reshape(n, m, -1)
     WJ = Jb * w_solver[None, :, None]
@@ -204,17 +206,6 @@ def _noisy_batch(robot, device, a_true, d, q, keys, s_q, s_p, s_r):
     return jax.vmap(lambda k: _noisy_readings(robot, device, a_true, d, q, k, s_q, s_p, s_r))(keys)
 
 
-@functools.partial(jax.jit, static_argnames=("robot", "device", "solver", "max_steps", "rtol", "atol"))
-def _mc_chunk(ys, x0, args, *, robot, device, solver, max_steps, rtol, atol):
-    one = functools.partial(_solve.__wrapped__, robot=robot, device=device, solver=solver,
-                            max_steps=max_steps, rtol=rtol, atol=atol)
-
-    def run(y):
-        return one(x0, {**args, "y": y})
-
-    return jax.vmap(run)(ys)
-
-
 @dataclasses.dataclass
 class MonteCarloResult:
     names: tuple[str, ...]  # estimated parameters (the base set)
@@ -256,27 +247,6 @@ class MonteCarloResult:
         return "\n".join(lines)
 
 
-def _sharded_chunk(devices, cfg):
-    """The chunk solver split over `devices`: each device gets its slice of the runs (committed
-    with `jax.device_put`) and runs its own vmapped LM, so the solver loops never synchronise.
-
-    On accelerators the slices are dispatched asynchronously and run at the same time. On forced
-    host CPU devices (XLA_FLAGS=--xla_force_host_platform_device_count) they run one after the
-    other: two concurrent while-loop programs deadlocked there (both wait on the one shared
-    thread pool), and so did a jit over a NamedSharding of the runs axis."""
-    concurrent = devices[0].platform != "cpu"
-
-    def run(ys, x0, args):
-        parts = np.split(np.asarray(ys), len(devices))
-        outs = []
-        for p, d in zip(parts, devices):
-            out = _mc_chunk(jax.device_put(p, d), jax.device_put(x0, d), jax.device_put(args, d), **cfg)
-            outs.append(out if concurrent else jax.block_until_ready(out))
-        return jax.tree_util.tree_map(lambda *v: np.concatenate([np.asarray(x) for x in v]), *outs)
-
-    return run
-
-
 def monte_carlo(robot, a_true, q, device="position", noise=None, runs: int = 100, known=(), seed: int = 0,
                 chunk: int = 64, devices=None, sigma_position=1e-3, sigma_orientation=1e-3,
                 max_steps: int = 50, solver: str | None = None, outlier_k: float = 5.0, start: str = "reference") -> MonteCarloResult:
@@ -313,42 +283,36 @@ def monte_carlo(robot, a_true, q, device="position", noise=None, runs: int = 100
     a_prior = jnp.asarray(ref.a_full)
     if start == "nominal":  # keep the noise-free frames but put the robot back at nominal, as identify starts
         a_prior = a_prior.at[idx].set(jnp.concatenate([robot.nominal, dev.nominal])[idx])
-    w = residual_weights(dev, sigma_position, sigma_orientation)
-    # O(1) starting residual for LM (see identify.make_args): the noise term is ~1 when the sigmas
-    # are the noise levels; from the nominal start the model error dominates
-    r0 = residuals(robot, dev, a_prior, jnp.asarray(clean.q), jnp.asarray(clean.y), w)
-    w = w / jnp.maximum(1.0, jnp.sqrt(jnp.mean(r0**2)))
-    args = dict(a_ref=a_prior, mask=jnp.asarray(mask), q=jnp.asarray(clean.q), y=jnp.asarray(clean.y),
-                w=w, mu=jnp.float64(0.0),
-                x_scale=jnp.asarray([1.0 if u in ("gain", "scale") else 0.01 for u in tuple(robot.units) + tuple(dev.units)]),
-                lb=jnp.full(len(mask), -jnp.inf), ub=jnp.full(len(mask), jnp.inf))
-    cfg = dict(robot=robot, device=dev, solver=solver, max_steps=max_steps, rtol=1e-8, atol=1e-10)
-    d_true = dev.nominal
+    problem = core.make_problem(robot, dev, clean.q, clean.y, weights=residual_weights(dev, sigma_position, sigma_orientation),
+                                free=np.isin(np.arange(len(ref.names)), idx), a_ref=np.asarray(a_prior))
+    # O(1) starting residual for LM (as `core.Problem.args`), but from the noise-free reference the residual is ~0:
+    # divide only by an RMS above 1 (the noise term is ~1 when the sigmas are the noise levels)
+    r0 = core.weighted_residuals(robot, dev, a_prior, clean.q, clean.y, problem.w)
+    args = dict(problem.args(idx, 0.0, np.asarray(a_prior)), w=jnp.asarray(problem.w / max(1.0, np.sqrt(np.mean(r0**2)))))
+    settings = core.Settings(solver, max_steps, 1e-8, 1e-10)
     keys = jax.random.split(jax.random.PRNGKey(seed), runs)
-    gen = functools.partial(_noisy_batch, robot, dev, jnp.asarray(a_true), d_true, jnp.asarray(clean.q),
+    gen = functools.partial(_noisy_batch, robot, dev, jnp.asarray(a_true), dev.nominal, jnp.asarray(clean.q),
                             s_q=s_q, s_p=s_p, s_r=s_r)
+
+    def solve_chunk(ys, shared):
+        out = core.solve_batch(problem, shared["x0"], dict(shared["args"], y=ys), settings, ("y",))
+        solve_chunk.compile_s += out[4]
+        return out[:4]
+
+    solve_chunk.compile_s = 0.0
     est, ok, its, norms = [], [], [], []
     t0 = time.perf_counter()
-    compile_s = 0.0
-    for start in range(0, runs, chunk):
-        k = keys[start:start + chunk]
+    for first in range(0, runs, chunk):
+        k = keys[first:first + chunk]
         pad = chunk - len(k)
         if pad:
             k = jnp.concatenate([k, jnp.repeat(k[-1:], pad, 0)])
-        ys = gen(k)
-        tc = time.perf_counter()
-        if start == 0:
-            if devices:
-                exe = _sharded_chunk(devices, cfg)
-                jax.block_until_ready(exe(ys, a_prior, args))  # compile on first call
-            else:
-                exe = _mc_chunk.lower(ys, a_prior, args, **cfg).compile()
-            compile_s = time.perf_counter() - tc
-        x, conv, steps, cost = exe(ys, a_prior, args)
+        x, conv, steps, cost = over_devices(solve_chunk, gen(k), {"x0": a_prior, "args": args}, devices or [])
         norms.append(np.sqrt(np.asarray(cost))[: chunk - pad])
         est.append(np.asarray(x)[: chunk - pad, :][:, idx])
         ok.append(np.asarray(conv)[: chunk - pad])
         its.append(np.asarray(steps)[: chunk - pad])
+    compile_s = solve_chunk.compile_s
     run_s = time.perf_counter() - t0 - compile_s
     est, ok, its, norms = np.concatenate(est), np.concatenate(ok), np.concatenate(its), np.concatenate(norms)
     reference = np.asarray(ref.a_full)[idx]

@@ -43,17 +43,15 @@ from jaxcal.fit.base import base_set
 from jaxcal.fit.data import Dataset
 from jaxcal.gap import fit as gf
 from jaxcal.gap import where as wh
+from jaxcal.gap.baseline import baseline_fits
 from jaxcal.gap.effects import EFFECTS, GLOBAL_EFFECTS, NEEDS, gap_model
 
 SEPARABLE_TOL = 1e-6
-# Closed loops leave geometric dependencies at ~1e-13 relative (the Delta's Table 4.6 rounds its values to
-# 4 digits): their base set drops columns whose QR pivot is below this share of the largest.
-CLOSED_BASE_TOL = 1e-10
 MAX_EFFECT_COLUMNS = 18  # effect columns the selected model may add (max_effects x at most 6)
 # Refit control (step 3). mu = 1: a departure of one typical size (1 cm, 10 mrad) from the baseline geometry
 # costs as much as one reading at the baseline RMS; well-measured directions (curvature >> 1) are not biased,
 # directions the training fold leaves nearly free are held at the baseline instead of running off.
-# Closed loops get no prior: their base set (CLOSED_BASE_TOL) is the conditioning control, and on the Delta the
+# Closed loops get no prior: their base set (jaxcal.fit.core.CLOSED_BASE_TOL) is the conditioning control, and on the Delta the
 # prior kept the geometry from moving with the effect (backlash refit 0.061 mm held out vs 0.039 mm linearised).
 PRIOR_MU = 1.0
 # Closed loops: the baseline LM stops after this many steps. Beyond ~40 it walked, on the Delta, along weakly
@@ -263,41 +261,6 @@ def _divergence(x_fit, x_base, x_start, r_fit, r_base, rows, cols, limits, names
     return ""
 
 
-def rigid_registration(P, Y):
-    """(R, t) minimising sum_i |R y_i + t - p_i|^2 over rotations (Kabsch: SVD of the centred cross-covariance,
-    with the sign fix that excludes reflections; Arun, Huang & Blostein 1987)."""
-    pc, yc = P.mean(axis=0), Y.mean(axis=0)
-    U, _, Vt = np.linalg.svd((Y - yc).T @ (P - pc))
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    return R, pc - R @ yc
-
-
-def _registered_start(model, x_nom, qj, cj, y, n) -> np.ndarray:
-    """The nominal model with the device frame D set by rigid registration of the readings onto the nominal
-    tool points (p = D y, so D is the registration of y onto p). Closed loops start their baseline from it:
-    from a device frame that is centimetres off (the blind cases' 5 cm, 0.05 rad), the Delta's LM passed
-    through geometries where samples do not close and ended there (held-out RMS of 1e5 mm)."""
-    from jaxcal.kin.rotations import log_so3
-
-    device = model.device
-    dev = [i for i, nm in enumerate(device.names) if nm.startswith("dev.")]
-    if dev != list(range(6)) or not np.all(device.free_mask[dev]):
-        return x_nom
-    x = x_nom.copy()
-    ng0 = model.robot.n_params
-    x[ng0:ng0 + 6] = 0.0  # identity frame: the readings are the tool points in the robot base frame
-    pred = np.asarray(gf.predict(jnp.asarray(x), qj, cj, model=model))[:n]
-    P = pred[:, :3, 3] if pred.ndim == 3 else pred.reshape(n, -1)[:, :3]
-    Y = y[:, :3, 3] if y.ndim == 3 else y.reshape(n, -1)[:, :3]
-    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(Y))):
-        return x_nom
-    R, t = rigid_registration(P, Y)
-    x[ng0:ng0 + 3] = t
-    x[ng0 + 3:ng0 + 6] = np.asarray(log_so3(jnp.asarray(R)))
-    return x
-
-
 def _lstsq_step(J, r, cols, rows):
     """Gauss-Newton step on the columns `cols` using the rows `rows`: argmin ||r + J d||."""
     A = J[np.ix_(rows, cols)]
@@ -341,7 +304,7 @@ class _Linear:
 
 
 def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_effects: int = 3, effects=EFFECTS,
-             seed: int = 0, max_steps: int = 100) -> Diagnosis:
+             seed: int = 0, max_steps: int = 200) -> Diagnosis:
     """Diagnose the sim-to-real gap of `robot` on `data` (position or pose device); see the module docstring."""
     t0 = time.perf_counter()
     device = data.device
@@ -399,20 +362,22 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
         xs, ok, n_steps = gf.solve_folds(jnp.asarray(x_refs), jnp.asarray(z_starts), args, model=model, max_steps=steps)
         return np.array(xs), np.asarray(ok), int(np.max(n_steps))
 
-    geo_free = np.concatenate([robot.free_mask, device.free_mask, np.zeros(len(model.effect_names), bool)])
-    x_start = _registered_start(model, x_nom, qj, cj, data.y, n) if robot.closure is not None else x_nom
-    x0s = np.tile(x_start, (folds + 1, 1))
-    t_solve = time.perf_counter()
-    w_all = jnp.asarray(valid[:, None] / comp_sigma[None, :])
-    _, Jf = gf.jacobians(jnp.asarray(x0s[:1]), qj, yj, cj, w_all, model=model)
-    Jf = np.asarray(Jf[0])
-    cand_geo = np.flatnonzero(geo_free)
-    prio = np.concatenate([robot.priority, device.priority])
-    c_base = None if robot.closure is None else CLOSED_BASE_TOL / np.finfo(float).eps
-    G = np.sort(cand_geo[base_set(Jf[:, cand_geo], prio[cand_geo], c=c_base).independent])
-    K_active = gf.active_size(len(G) + MAX_EFFECT_COLUMNS)
+    # 1. Baseline: `identify` on every training fold and on all data (the calibration core).
     base_steps = max_steps if robot.closure is None else min(max_steps, CLOSED_BASELINE_STEPS)
-    xs, ok_base, steps_base = solve(x0s, G, comp_sigma, steps=base_steps)
+    t_solve = time.perf_counter()
+    train = [fold[:n] != b for b in range(folds)] + [np.ones(n, bool)]
+    cals = baseline_fits(robot, data, train, sigma_position=comp_sigma[0], sigma_orientation=comp_sigma[-1],
+                         max_steps=base_steps)
+    ng = model.n_geometry
+    xs = np.tile(x_nom, (folds + 1, 1))
+    x0s = xs.copy()  # each baseline's start: nominal robot, device frame registered and fitted
+    for b, cal in enumerate(cals):
+        xs[b, :ng], x0s[b, :ng] = cal.x, cal.x_frames
+    ok_base = np.array([c.converged and c.frames_converged for c in cals])
+    steps_base = max(c.iterations for c in cals)
+    G = cals[folds].estimated
+    K_active = gf.active_size(len(G) + MAX_EFFECT_COLUMNS)
+    w_all = jnp.asarray(valid[:, None] / comp_sigma[None, :])
     if device.kind == "pose":  # weight position and orientation by their residual RMS at the baseline
         rb = np.asarray(gf.residual_batch(jnp.asarray(xs[folds:]), qj, yj, cj, jnp.ones((npad, m)), model=model))[0][valid]
         comp_sigma = np.array([np.sqrt(np.mean(rb[:, :3] ** 2))] * 3 + [np.sqrt(np.mean(rb[:, 3:] ** 2))] * 3)

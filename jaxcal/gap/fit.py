@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from jaxcal.fit.identify import _solver
+from jaxcal.fit.core import make_solver
 from jaxcal.gap.effects import GapModel, residuals
 
 SIZE_BUCKETS = (96, 192, 320)  # padded sample counts; beyond 320, multiples of 128
@@ -108,7 +108,7 @@ def solve_folds(x_refs, z_starts, args, *, model, max_steps=100):
         r_ref = _data_rows(model, jnp.zeros_like(z0), a)
         a = dict(a, w=a["w"] / jnp.maximum(jnp.sqrt(jnp.sum(r_ref**2) / jnp.maximum(jnp.sum(a["w"] > 0), 1)), 1e-12))
         fn = functools.partial(_rows_with_prior, model)
-        sol = optx.least_squares(fn, _solver("lm", RTOL, ATOL), z0, a, max_steps=max_steps, throw=False)
+        sol = optx.least_squares(fn, make_solver("lm", RTOL, ATOL), z0, a, max_steps=max_steps, throw=False)
         return x_ref + a["S"] @ sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 
     return jax.vmap(one, (0, 0, _AXES))(x_refs, z_starts, args)

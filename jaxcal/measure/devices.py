@@ -102,6 +102,21 @@ class Device:
             nom[self.names.index(k)] = v
         return dataclasses.replace(self, nominal_np=nom)
 
+    @property
+    def frame_index(self):
+        """Indices in d of the 6-D device frame (x, y, z, rx, ry, rz), or None."""
+        return (0, 1, 2, 3, 4, 5) if self.names[:6] == _frame_names("dev") else None
+
+    def points(self, y):
+        """The positional part of readings y (N, ...) as points (N, K, 3) in the device frame, or None."""
+        if self.kind == "position":
+            return y[:, None, :]
+        if self.kind in ("multi_position", "three_point"):
+            return y
+        if self.kind == "pose":
+            return y[:, None, :3, 3]
+        return None
+
     # -- the model -------------------------------------------------------------------------
     def read(self, tip: Pose, d):
         """Reading for one tool pose `tip` (in the robot base frame) and device parameters d."""

@@ -18,7 +18,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxcal.fit.identify import _x_scale, identify  # noqa: E402
+from jaxcal.fit.core import x_scale  # noqa: E402
+from jaxcal.fit.identify import identify  # noqa: E402
 from jaxcal.io_atomic import write_json_atomic, write_text_atomic  # noqa: E402
 from jaxcal.report.plots import plot_convergence, save_atomic  # noqa: E402
 
@@ -47,7 +48,7 @@ def identifiability_summary(fit) -> dict:
     idx = np.asarray(fit.info["estimated_index"], int)
     units = tuple(fit.robot.units) + tuple(fit.device.units)
     if len(idx):
-        Js = np.asarray(fit.jacobian)[:, idx] * _x_scale(units)[idx]
+        Js = np.asarray(fit.jacobian)[:, idx] * x_scale(units)[idx]
         s = np.linalg.svd(Js, compute_uv=False)
         cond = float(s[0] / max(s[-1], 1e-300))
     else:

@@ -1,0 +1,446 @@
+"""The calibration core: one problem, one start, one solve path, one typed result.
+
+Every client (identify, Monte Carlo, fleet, cross-validation, the gap baseline, the CLI) builds a
+`Problem` and calls `calibrate` (or, for a batch of problems that differ only in their data,
+`solve_batch`). Nothing else in jaxcal runs its own copy of the solve path.
+
+The unknowns x are the full parameter vector (robot parameters, then device parameters). The
+solver minimises the stacked residual (seed 004 eq 3.12 with bounds as a penalty, §3.3)
+
+    r(x) = [ w * (y - read(forward(a, q), d))               data rows, one per reading component
+             sqrt(mu) m * (x - x_ref) / s                   bias toward the prior on estimated entries
+             (1 - m) * (x - x_ref) / s                      pin: entries not estimated stay at x_ref
+             1e6 m * max(x - ub, lb - x, 0) / s ]           bound penalty
+
+with m the 0/1 mask of estimated entries and s their typical size (`x_scale`). Pinning instead
+of slicing keeps one shape for every stage (frames-only fit, base-set fit, bias stages, folds),
+so one compiled solver serves them all; a sample weight of 0 removes a sample exactly, so a
+fold is a weight mask and gives the same optimum as the subset.
+
+The start is the same for every robot and device (`start`): the device frame by closed-form
+rigid registration of the readings onto the nominal model's points (any rotation, any distance),
+kept only where it lowers the cost, then the frames-only fit of every free device parameter.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import functools
+import time
+import warnings
+
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+
+from jaxcal.fit.base import base_set
+from jaxcal.fit.csvfile import DataError
+from jaxcal.forward import forward
+from jaxcal.kin.model import Robot
+from jaxcal.kin.rotations import log_so3
+from jaxcal.measure.devices import Device
+
+# The one name -> solver map (CLI, job files, `identify(solver=...)`); an optimistix solver object works too.
+SOLVERS = {
+    "lm": lambda rtol, atol: optx.LevenbergMarquardt(rtol=rtol, atol=atol),
+    # normal equations by Cholesky: faster for tall Jacobians, less robust with noise (shared JAX_NOTES 4)
+    "lm_normal": lambda rtol, atol: optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky())),
+    "gn": lambda rtol, atol: optx.GaussNewton(rtol=rtol, atol=atol),
+    "gn_normal": lambda rtol, atol: optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky())),
+    "dogleg": lambda rtol, atol: optx.Dogleg(rtol=rtol, atol=atol),
+    "bfgs": lambda rtol, atol: optx.BFGS(rtol=rtol, atol=atol),
+}
+# Closed loops: geometric dependencies are left at ~1e-13 relative (the Delta's Table 4.6 rounds its
+# values to 4 digits), so their base set drops QR pivots below this share of the largest.
+CLOSED_BASE_TOL = 1e-10
+# Readings whose best similarity registration onto the model needs one of these scales are in another unit.
+UNIT_SCALES = {"mm": 1e-3, "cm": 1e-2, "inch": 0.0254}
+
+
+def make_solver(solver, rtol: float, atol: float):
+    """An optimistix least-squares solver from a name of `SOLVERS`, or the given solver object unchanged."""
+    if not isinstance(solver, str):
+        return solver
+    if solver not in SOLVERS:
+        raise ValueError(f"unknown solver {solver!r}; expected one of {tuple(SOLVERS)} or an optimistix solver")
+    return SOLVERS[solver](rtol, atol)
+
+
+def x_scale(units) -> np.ndarray:
+    """Typical size of a parameter change: 0.01 (m or rad) for geometry, 1 for gains and scales."""
+    return np.array([1.0 if u in ("gain", "scale") else 0.01 for u in units])
+
+
+def residuals(robot: Robot, device: Device, a_full, q, y, w):
+    """Weighted residuals (N, m) of all samples: w * (measured - predicted)."""
+    nr = robot.n_params
+    tips = forward(robot, a_full[:nr], q)
+    pred = jax.vmap(device.read, (0, None))(tips, a_full[nr:])
+    return jax.vmap(device.residual)(pred, y) * w
+
+
+def stacked(robot: Robot, device: Device, x, args):
+    """The stacked residual r(x) of the module docstring; `args` holds the arrays of a `Problem`."""
+    m = args["mask"]
+    a_full = jnp.where(m > 0, x, args["a_ref"])
+    r = residuals(robot, device, a_full, args["q"], args["y"], args["w"]).reshape(-1)
+    scaled = (x - args["a_ref"]) / args["x_scale"]
+    over = jnp.maximum(x - args["ub"], 0.0) + jnp.maximum(args["lb"] - x, 0.0)
+    return jnp.concatenate([r, jnp.sqrt(args["mu"]) * m * scaled + (1.0 - m) * scaled, 1e6 * m * over / args["x_scale"]])
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """Static solver settings (hashable: they select the compiled solver)."""
+
+    solver: object = "lm"
+    max_steps: int = 200
+    rtol: float = 1e-8
+    atol: float = 1e-10
+
+
+def _solve_one(x0, args, robot, device, settings: Settings):
+    fn = functools.partial(stacked, robot, device)
+    slv = make_solver(settings.solver, settings.rtol, settings.atol)
+    sol = optx.least_squares(fn, slv, x0, args, max_steps=settings.max_steps, throw=False)
+    return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"], jnp.sum(fn(sol.value, args) ** 2)
+
+
+@functools.partial(jax.jit, static_argnames=("robot", "device", "settings", "batched"))
+def _solve_jit(x0, args, *, robot, device, settings, batched):
+    """One solve, or a vmapped batch: `batched` names the entries of args (and "x0") with a leading batch axis."""
+    one = functools.partial(_solve_one, robot=robot, device=device, settings=settings)
+    if not batched:
+        return one(x0, args)
+    axes = {k: (0 if k in batched else None) for k in args}
+    return jax.vmap(one, (0 if "x0" in batched else None, axes))(x0, args)
+
+
+_COMPILED: collections.OrderedDict = collections.OrderedDict()
+_COMPILED_MAX = 64  # compiled solvers kept per process (least recently used first out)
+
+
+def compiled_solver(x0, args, robot, device, settings: Settings, batched=()):
+    """(executable, seconds spent compiling: 0 when reused). One compile per robot, device, settings,
+    argument shapes and placement (arrays committed to another JAX device get their own executable);
+    at most _COMPILED_MAX are kept (robots hash by identity, so the cache is bounded)."""
+    shapes = jax.tree_util.tree_map(lambda v: (jnp.shape(v), jnp.result_type(v)), (x0, args))
+    placed = [str(v.sharding) for v in jax.tree_util.tree_leaves((x0, args)) if isinstance(v, jax.Array) and v.committed]
+    key = (robot, device, settings, tuple(batched), str(shapes), tuple(sorted(set(placed))))
+    if key in _COMPILED:
+        _COMPILED.move_to_end(key)
+        return _COMPILED[key], 0.0
+    t = time.perf_counter()
+    exe = _solve_jit.lower(x0, args, robot=robot, device=device, settings=settings, batched=tuple(batched)).compile()
+    _COMPILED[key] = exe
+    if len(_COMPILED) > _COMPILED_MAX:
+        _COMPILED.popitem(last=False)
+    return exe, time.perf_counter() - t
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _residual_rows(robot, device, a_full, q, y, w):
+    return residuals(robot, device, a_full, q, y, w)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _jacobian(robot, device, a_full, q, y, w):
+    return jax.jacfwd(lambda a: residuals(robot, device, a, q, y, w).reshape(-1))(a_full)
+
+
+def weighted_residuals(robot, device, a_full, q, y, w) -> np.ndarray:
+    """w * (y - read(a_full, q)) as a numpy array (N, m)."""
+    return np.asarray(_residual_rows(robot, device, jnp.asarray(a_full), jnp.asarray(q), jnp.asarray(y), jnp.asarray(w)))
+
+
+def jacobian(robot, device, a_full, q, y, w) -> np.ndarray:
+    """d(weighted residual)/d(a_full), (N*m, P), by forward-mode autodiff."""
+    return np.asarray(_jacobian(robot, device, jnp.asarray(a_full), jnp.asarray(q), jnp.asarray(y), jnp.asarray(w)))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Problem:
+    """A calibration problem: robot, device, data, weights and what is estimated.
+
+    q (N, n_inputs), y (N, *reading_shape); w (N, m) the weight 1/sigma of every residual component
+    times the sample weight (0 removes a sample); free: mask over the full vector of what may be
+    estimated; a_ref: the prior (full vector); bounds lb, ub (full vector, +-inf where none).
+    """
+
+    robot: Robot
+    device: Device
+    q: np.ndarray
+    y: np.ndarray
+    w: np.ndarray
+    free: np.ndarray
+    a_ref: np.ndarray
+    lb: np.ndarray
+    ub: np.ndarray
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self.robot.names) + tuple(self.device.names)
+
+    @property
+    def units(self) -> tuple[str, ...]:
+        return tuple(self.robot.units) + tuple(self.device.units)
+
+    @property
+    def priority(self) -> np.ndarray:
+        return np.concatenate([self.robot.priority, self.device.priority])
+
+    @property
+    def used(self) -> np.ndarray:
+        """Samples with a non-zero weight."""
+        return np.any(self.w != 0, axis=1)
+
+    def with_weights(self, w) -> "Problem":
+        return dataclasses.replace(self, w=np.asarray(w, float))
+
+    def args(self, estimated, mu, ref) -> dict:
+        """Solver arguments: estimate the indices `estimated`, bias mu toward `ref`. The data weights are
+        divided by the RMS weighted residual over the used samples at `ref`: the optimum is unchanged and
+        LM starts with an O(1) residual (optimistix's trust region took 4 to 34 iterations on the same
+        problem depending on that scale); samples of weight 0 do not enter that RMS, so a fold (weight
+        mask) and the subset it selects see the same scaled problem."""
+        mask = np.zeros(len(self.names))
+        mask[np.asarray(estimated, int)] = 1.0
+        r = weighted_residuals(self.robot, self.device, ref, self.q, self.y, self.w)
+        used = self.used
+        rms = np.sqrt(np.sum(r[used] ** 2) / max(r[used].size, 1)) if used.any() else 1.0
+        return dict(a_ref=jnp.asarray(ref), mask=jnp.asarray(mask), q=jnp.asarray(self.q), y=jnp.asarray(self.y),
+                    w=jnp.asarray(self.w / max(rms, 1e-12)), mu=jnp.float64(mu), x_scale=jnp.asarray(x_scale(self.units)),
+                    lb=jnp.asarray(self.lb), ub=jnp.asarray(self.ub))
+
+    def cost(self, a_full) -> float:
+        r = weighted_residuals(self.robot, self.device, a_full, self.q, self.y, self.w)
+        return float(np.sum(r**2))
+
+
+def make_problem(robot: Robot, device: Device, q, y, *, weights, free, a_ref, bounds=None, sample_weights=None) -> Problem:
+    """A `Problem`: weights (m,) per residual component, optionally times sample_weights (N,)."""
+    q, y = np.asarray(q, float), np.asarray(y, float)
+    w = np.broadcast_to(np.asarray(weights, float), (len(q), np.size(weights))).copy()
+    if sample_weights is not None:
+        sw = np.asarray(sample_weights, float)
+        if sw.shape != (len(q),) or not np.all(np.isfinite(sw)) or np.any(sw < 0):
+            raise ValueError(f"sample_weights must be {len(q)} finite non-negative numbers")
+        w = sw[:, None] * w
+    names = tuple(robot.names) + tuple(device.names)
+    lb, ub = np.full(len(names), -np.inf), np.full(len(names), np.inf)
+    for n, (lo, hi) in (bounds or {}).items():
+        if n not in names:
+            raise KeyError(f"bounds: unknown parameter {n!r}")
+        lb[names.index(n)], ub[names.index(n)] = lo, hi
+    return Problem(robot, device, q, y, w, np.asarray(free, bool), np.asarray(a_ref, float), lb, ub)
+
+
+# -- the start ------------------------------------------------------------------------------------
+def similarity_registration(P, Y):
+    """(s, R, t) minimising sum_i |s R y_i + t - p_i|^2 over rotations R, scales s > 0 and t (Umeyama 1991:
+    SVD of the centred cross-covariance with the sign fix that excludes reflections)."""
+    pc, yc = P.mean(axis=0), Y.mean(axis=0)
+    U, S, Vt = np.linalg.svd((Y - yc).T @ (P - pc))
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    var_y = np.sum((Y - yc) ** 2)
+    s = float((S[0] + S[1] + d * S[2]) / var_y) if var_y > 0 else 1.0
+    return s, R, pc - s * R @ yc
+
+
+def rigid_registration(P, Y):
+    """(R, t) minimising sum_i |R y_i + t - p_i|^2 over rotations (Kabsch; Arun, Huang & Blostein 1987)."""
+    _, R, _ = similarity_registration(P, Y)
+    return R, P.mean(axis=0) - R @ Y.mean(axis=0)
+
+
+def _unit_mistake(scale: float) -> str | None:
+    """The length unit the readings seem to be in, when the registration scale says they are not in metres."""
+    for unit, s in UNIT_SCALES.items():
+        if abs(np.log(scale / s)) < np.log(1.25):
+            return unit
+    return None
+
+
+def registered_frame(problem: Problem, a_full) -> np.ndarray | None:
+    """a_full with the device frame D (readings y = D^-1 p) set by rigid registration of the readings onto
+    the model's points p at a_full (marker offset as given). None when the device has no 6-D frame, its
+    readings carry no points, the frame is not free, or the points span less than a plane.
+    Raises DataError when the readings fit the model only after scaling by 1/1000 (mm), 1/100 (cm) or 1/25.4."""
+    device, robot = problem.device, problem.robot
+    idx = device.frame_index
+    if idx is None or not np.all(problem.free[robot.n_params + np.asarray(idx)]):
+        return None
+    used = problem.used
+    Y = device.points(problem.y[used])
+    if Y is None:
+        return None
+    x = np.array(a_full, float)
+    x[robot.n_params + np.asarray(idx)] = 0.0  # identity frame: the readings are then the model's points
+    tips = forward(robot, jnp.asarray(x[:robot.n_params]), jnp.asarray(problem.q[used]))
+    pred = np.asarray(jax.vmap(device.read, (0, None))(tips, jnp.asarray(x[robot.n_params:])))
+    P, Y = device.points(pred).reshape(-1, 3), Y.reshape(-1, 3)
+    ok = np.all(np.isfinite(P), axis=1) & np.all(np.isfinite(Y), axis=1)
+    P, Y = P[ok], Y[ok]
+    if len(P) < 3 or np.linalg.svd(Y - Y.mean(0), compute_uv=False)[1] < 1e-9 * max(np.ptp(Y), 1e-300):
+        return None
+    s, R, _ = similarity_registration(P, Y)
+    unit = _unit_mistake(s)
+    if unit is not None:
+        raise DataError(f"the {device.kind} readings fit the robot only after scaling them by {s:.4g}: they look like {unit}, "
+                        "not metres; give the unit (Dataset.from_csv(..., length_unit=...) or a '# units:' line)")
+    R, t = rigid_registration(P, Y)
+    x[robot.n_params + np.asarray(idx[:3])] = t
+    x[robot.n_params + np.asarray(idx[3:])] = np.asarray(log_so3(jnp.asarray(R)))
+    return x
+
+
+@dataclasses.dataclass(frozen=True)
+class Solution:
+    """One solver run: the full vector, whether the solver met its tolerance, its steps and final cost."""
+
+    x: np.ndarray
+    converged: bool
+    steps: int
+    cost: float
+    compile_s: float
+
+
+def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, ref=None) -> Solution:
+    """Minimise the stacked residual over the `estimated` indices from x0, with bias mu toward ref (default x0)."""
+    ref = x0 if ref is None else ref
+    args = problem.args(estimated, mu, ref)
+    x0 = jnp.asarray(x0, jnp.float64)
+    exe, dt = compiled_solver(x0, args, problem.robot, problem.device, settings)
+    x, ok, steps, cost = exe(x0, args)
+    x = np.where(np.asarray(args["mask"]) > 0, np.asarray(x), np.asarray(ref))
+    return Solution(x, bool(ok), int(steps), float(cost), dt)
+
+
+def solve_batch(problem: Problem, x0s, args, settings: Settings, batched) -> tuple:
+    """A vmapped batch of solves of one problem's structure: `batched` names the leading-axis entries of
+    args (and "x0" for a batch of starts). Returns (x (B, P), ok (B,), steps (B,), cost (B,), compile_s)."""
+    exe, dt = compiled_solver(x0s, args, problem.robot, problem.device, settings, batched)
+    x, ok, steps, cost = exe(x0s, args)
+    return np.asarray(x), np.asarray(ok), np.asarray(steps), np.asarray(cost), dt
+
+
+def start(problem: Problem, settings: Settings) -> tuple[np.ndarray, Solution | None, bool]:
+    """The one start: the device frame registered onto the nominal model (where that lowers the cost), then
+    every free device parameter fitted with the robot at its prior. Returns (x, frames-only solution, registered)."""
+    nr = problem.robot.n_params
+    x = np.array(problem.a_ref, float)
+    reg = registered_frame(problem, x)
+    registered = reg is not None and problem.cost(reg) < problem.cost(x)
+    if registered:
+        x = reg
+    dev_idx = np.flatnonzero(problem.free[nr:]) + nr
+    if not dev_idx.size:
+        return x, None, registered
+    sol = solve(problem, x, dev_idx, settings)
+    return sol.x, sol, registered
+
+
+# -- the whole calibration ------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+    """What `calibrate` returns: the estimate and everything needed to judge it.
+
+    x: full vector (robot, device); x_frames: the start (nominal robot, frames fitted); estimated /
+    undetermined / no_effect / regrouped: index arrays into the full vector; J: weighted Jacobian at x
+    (all columns); converged: every solver stage met its tolerance; iterations: steps of the last stage
+    set; registered: the device frame came from the rigid registration."""
+
+    problem: Problem
+    x: np.ndarray
+    x_frames: np.ndarray
+    estimated: np.ndarray
+    undetermined: np.ndarray
+    no_effect: np.ndarray
+    regrouped: np.ndarray
+    J: np.ndarray
+    converged: bool
+    frames_converged: bool
+    iterations: int
+    registered: bool
+    compile_s: float
+    run_s: float
+
+
+def choose_estimated(problem: Problem, J, base: bool, base_tol: float | None):
+    """(estimated, undetermined, no_effect, regrouped) index arrays: the base set (seed 001 App. III) of the free
+    columns of J under the priorities, or every free column when base is False."""
+    cand = np.flatnonzero(problem.free)
+    if not base:
+        e = np.zeros(0, int)
+        return cand, e, e, e
+    c = base_tol / np.finfo(float).eps if base_tol is not None else (
+        CLOSED_BASE_TOL / np.finfo(float).eps if problem.robot.closure is not None else None)
+    bs = base_set(J[:, cand], problem.priority[cand], c=c)
+    return (np.sort(cand[bs.independent]), np.sort(cand[np.concatenate([bs.regrouped, bs.no_effect])]),
+            cand[bs.no_effect], cand[bs.regrouped])
+
+
+def bias_schedule(bias) -> list[float]:
+    """mu per stage (seed 004 eq 3.12): none -> [0]; a number b -> b, b/10, b/100, b/1000, 0; a sequence as given."""
+    if bias is None:
+        return [0.0]
+    if np.ndim(bias):
+        return [float(b) for b in bias]
+    return [float(bias) * 10.0**-k for k in range(4)] + [0.0]
+
+
+def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool = True, bias=None, multistart: int = 0,
+              seed: int = 0, base_tol: float | None = None) -> Calibration:
+    """The calibration path every client uses: start, base set at the start, bias stages (and multi-start)."""
+    t0 = time.perf_counter()
+    x_frames, frames_sol, registered = start(problem, settings)
+    compile_s = 0.0 if frames_sol is None else frames_sol.compile_s
+    J0 = jacobian(problem.robot, problem.device, x_frames, problem.q, problem.y, problem.w)
+    est, undetermined, no_effect, regrouped = choose_estimated(problem, J0, base, base_tol)
+    x, iterations, converged = x_frames, 0, True
+    for mu in bias_schedule(bias):
+        if multistart:
+            args = problem.args(est, mu, x_frames)
+            rng = np.random.default_rng(seed)
+            spread = np.zeros((multistart, len(x)))
+            spread[:, est] = x_scale(problem.units)[est] * rng.uniform(-1, 1, (multistart, len(est)))
+            x0s = jnp.asarray(np.concatenate([x[None], x[None] + spread]))
+            xs, oks, steps, costs, dt = solve_batch(problem, x0s, args, settings, ("x0",))
+            best = int(np.argmin(np.where(oks, costs, np.inf))) if oks.any() else int(np.argmin(costs))
+            sol = Solution(np.where(np.asarray(args["mask"]) > 0, xs[best], x_frames), bool(oks[best]), int(steps[best]),
+                           float(costs[best]), dt)
+        else:
+            sol = solve(problem, x, est, settings, mu, ref=x_frames)
+        x, compile_s = sol.x, compile_s + sol.compile_s
+        iterations += sol.steps
+        converged = converged and sol.converged
+    J = jacobian(problem.robot, problem.device, x, problem.q, problem.y, problem.w)
+    run_s = time.perf_counter() - t0 - compile_s
+    frames_ok = True if frames_sol is None else frames_sol.converged
+    return Calibration(problem, x, x_frames, est, undetermined, no_effect, regrouped, J, converged, frames_ok, iterations,
+                       registered, compile_s, run_s)
+
+
+def drop_unclosed(robot: Robot, a0, q) -> np.ndarray:
+    """Mask of the samples whose loops close at a0 (all True for open chains); warns naming the others."""
+    if robot.closure is None:
+        return np.ones(len(q), bool)
+    from jaxcal.closure import closed
+
+    ok = np.asarray(closed(robot, jnp.asarray(a0), jnp.asarray(q)))
+    if not ok.any():
+        raise ValueError(f"no sample of {robot.name!r} closes at the starting parameters (samples 0..{len(ok) - 1})")
+    if not ok.all():
+        bad = np.flatnonzero(~ok).tolist()
+        warnings.warn(f"{robot.name}: {len(bad)} sample(s) do not close at the starting parameters and are left out: "
+                      f"{bad[:20]}{' ...' if len(bad) > 20 else ''}", stacklevel=3)
+    return ok
+
+
+__all__ = ["Calibration", "Problem", "SOLVERS", "Settings", "Solution", "calibrate", "choose_estimated", "compiled_solver",
+           "drop_unclosed", "jacobian", "make_problem", "make_solver", "registered_frame", "residuals", "rigid_registration",
+           "similarity_registration", "solve", "solve_batch", "stacked", "start", "weighted_residuals", "x_scale"]

@@ -1,0 +1,32 @@
+"""The diagnosis baseline: the geometric calibration of every training fold, by the calibration core.
+
+A fold is a sample-weight mask, so fold b's baseline is exactly `identify` on that fold's samples
+(same start: device frame registered onto the readings, then the frames-only fit; same base set;
+same solver), and the all-data baseline is `identify` on every sample.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from jaxcal.fit import core
+from jaxcal.fit.identify import residual_weights
+
+
+def baseline_fits(robot, data, train_masks, *, sigma_position: float, sigma_orientation: float,
+                  max_steps: int) -> list[core.Calibration]:
+    """One `core.Calibration` per boolean mask of training samples (N,), as `identify(robot, data.subset(mask),
+    sigma_position=, sigma_orientation=, max_steps=)` would give. Samples whose loops do not close at the
+    nominal parameters are left out of every fold (as `identify` leaves them out)."""
+    device = data.device
+    closes = core.drop_unclosed(robot, robot.nominal, data.q)
+    problem = core.make_problem(robot, device, data.q, data.y,
+                                weights=residual_weights(device, sigma_position, sigma_orientation),
+                                free=np.concatenate([robot.free_mask, device.free_mask]),
+                                a_ref=np.concatenate([robot.nominal_np, device.nominal_np]))
+    settings = core.Settings("lm", max_steps)
+    return [core.calibrate(problem.with_weights(problem.w * (np.asarray(m) & closes)[:, None]), settings)
+            for m in train_masks]
+
+
+__all__ = ["baseline_fits"]
