@@ -160,7 +160,7 @@ def expand_free(patterns, robot):
 def calibrated_robot_file(robot) -> str:
     """File name of the calibrated robot: URDF for robots that came from a URDF (a file or a
     URDF-based built-in), else the seed-table YAML."""
-    return f"{robot.name}_calibrated.{'urdf' if robot.bodies[0].convention == 'urdf' else 'yaml'}"
+    return f"{robot.name}_calibrated.{robot.bodies[0].conv.file_format}"
 
 
 # -- identifiable --------------------------------------------------------------------------------------

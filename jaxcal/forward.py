@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from jaxcal.closure.core import forward_closed
 from jaxcal.kin.model import Robot, forward_open
 from jaxcal.kin.pose import Pose
 
@@ -12,7 +13,5 @@ def forward(robot: Robot, a, q) -> Pose:
         fast = getattr(robot.closure, "forward", None)  # a mechanism-specific closure (e.g. the Delta)
         if fast is not None:
             return fast(robot, a, q)
-        from jaxcal.closure import forward_closed
-
         return forward_closed(robot, a, q)
     return forward_open(robot, a, q)

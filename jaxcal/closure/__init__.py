@@ -15,9 +15,9 @@ from jaxcal.closure.core import (
     solve,
     tree_frames,
 )
-from jaxcal.closure.planar import planar_frames, planar_robot
+from jaxcal.closure.planar import planar_robot
 from jaxcal.closure.table import closure_from_rows
 
 __all__ = ["CLOSED_TOL", "FAIL_OFFSET", "VERDICTS", "Closure", "ClosureSolution", "Mobility", "all_frames", "closed",
            "closure_from_rows", "closure_residual", "constraint_jacobian", "forward_closed", "mobility", "open_tree",
-           "planar_frames", "planar_robot", "solve", "tree_frames"]
+           "planar_robot", "solve", "tree_frames"]

@@ -1,13 +1,13 @@
 """Mobility and constraint analysis of a closed mechanism (seed 004 §2.5, eq 2.88-2.97 and §2.5.2).
 
 The closure constraints linearised at a closed configuration, dv/da da = 0 (eq 2.90), are taken over
-the full parameter set in which each free joint variable stands in for its own offset parameter
-(a3 of a rotary, d3 of a prismatic MCPC joint, phi of a planar joint; appended when the offset is
-not a parameter). With r the number of significant singular values of dv/da and n_f the number of
-free joints: r > n_f over-constrained, r = n_f properly constrained, r < n_f under-constrained. The
-null space N (last n - r right singular vectors) post-multiplied by psi^-1, psi the rows of N of the
-controlled parameters (eq 2.94), gives the closed-loop motions; a large cond(psi) marks a
-near-singular configuration.
+the full parameter set in which each free joint variable stands in for its own offset parameter,
+the row entry its variable adds to (`Convention.joint_row_index`: a3 of a rotary, d3 of a prismatic
+MCPC joint, phi of a planar joint; appended when the offset is not a parameter). With r the number
+of significant singular values of dv/da and n_f the number of free joints: r > n_f over-constrained,
+r = n_f properly constrained, r < n_f under-constrained. The null space N (last n - r right singular
+vectors) post-multiplied by psi^-1, psi the rows of N of the controlled parameters (eq 2.94), gives
+the closed-loop motions; a large cond(psi) marks a near-singular configuration.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.closure.core import _check, closure_residual, solve
+from jaxcal.closure.core import checked_closure, closure_residual, solve
 from jaxcal.kin.model import Robot, joint_variables
 
 VERDICTS = ("proper", "over-constrained", "under-constrained")
@@ -40,11 +40,8 @@ class Mobility(NamedTuple):
 def _offset_index(robot: Robot, body_number: int) -> int:
     """Parameter index of the joint-variable offset of a body (-1 when it is not a parameter)."""
     b = robot.bodies[body_number - 1]
-    if b.convention == "planar":
-        return b.rows[1]
-    if b.convention == "mcpc":
-        return b.rows[2] if b.kind == 0 else b.rows[5]
-    return -1
+    k = b.conv.joint_row_index(b.kind)
+    return -1 if k is None else b.rows[k]
 
 
 def constraint_jacobian(robot: Robot, a, q, theta_free):
@@ -52,7 +49,7 @@ def constraint_jacobian(robot: Robot, a, q, theta_free):
 
     Returns (J, column names, indices of the free-joint columns).
     """
-    c = _check(robot)
+    c = checked_closure(robot)
     a = jnp.asarray(a, dtype=jnp.float64)
     qj = joint_variables(robot, a, jnp.asarray(q, dtype=jnp.float64))
     theta_free = jnp.asarray(theta_free, dtype=jnp.float64)
@@ -82,7 +79,7 @@ def mobility(robot: Robot, a=None, q=None, theta_free=None, rtol: float = 1e-8, 
     theta_free defaults to the closure from the robot's start; give it for mechanisms that do not
     close from the start (e.g. over-constrained ones at a consistent setting).
     """
-    c = _check(robot)
+    c = checked_closure(robot)
     a = robot.nominal if a is None else jnp.asarray(a, dtype=jnp.float64)
     q = robot.home if q is None else jnp.asarray(q, dtype=jnp.float64)
     if theta_free is None:

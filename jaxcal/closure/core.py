@@ -1,8 +1,9 @@
 """Loop closure of trees with closure pairs (seed 004 §2.3-2.4).
 
-A closed mechanism is described as an open tree (MCPC rows, or the planar absolute-angle bodies of
-`jaxcal.closure.planar`) plus a `Closure`: which body frames must coincide (closure pairs), which
-non-actuated joints are free, and the free-joint start that selects the assembly mode.
+A closed mechanism is described as an open tree (bodies of any joint convention, e.g. MCPC rows or
+the planar absolute-angle bodies built by `jaxcal.closure.planar`) plus a `Closure`: which body
+frames must coincide (closure pairs), which non-actuated joints are free, and the free-joint start
+that selects the assembly mode.
 
 Closure (seed 004 eq 2.19-2.25): with g_p = [r_0p; eta_p] the position and Euler parameters of
 frame p, find theta_free minimising sum_i v_i^T Wc v_i with v_i = g_{p_i} - g_{q_i}; at a spherical
@@ -29,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from jaxcal.kin.model import Robot, _batched, frames_single, joint_variables
+from jaxcal.kin.model import Robot, frames_single, joint_variables, map_leading_axes
 from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import quat_from_matrix
 from jaxcal.linalg import solve_small
@@ -92,7 +93,8 @@ class ClosureSolution(NamedTuple):
     steps: jnp.ndarray
 
 
-def _check(robot: Robot) -> Closure:
+def checked_closure(robot: Robot) -> Closure:
+    """The robot's `Closure`, after checking that its pairs and free joints name bodies of the robot."""
     c = robot.closure
     if not isinstance(c, Closure):
         raise ValueError(f"robot {robot.name!r} has no jaxcal.closure.Closure description (closure={c!r})")
@@ -112,32 +114,21 @@ def _check(robot: Robot) -> Closure:
 def open_tree(robot: Robot) -> Robot:
     """The tree with every free joint turned into an input after the actuated ones (closure removed).
 
-    Its joint vector is [joint_variables(q), theta_free, 0]; gains/coupling are applied before. MCPC
-    rotary/prismatic bodies that are neither actuated nor free (e.g. one joint of a closure pair)
-    read the trailing constant 0.
+    Its joint vector is [joint_variables(q), theta_free]; gains/coupling are applied before. Joints
+    that are neither actuated nor free (e.g. one joint of a closure pair) have no input and stay at 0.
     """
-    c = _check(robot)
+    c = checked_closure(robot)
     n_act = robot.n_inputs
     bodies = list(robot.bodies)
     for k, b in enumerate(c.free):
         bodies[b - 1] = dataclasses.replace(bodies[b - 1], inputs=(n_act + k,))
-    zero = n_act + c.n_free
-    for i, b in enumerate(bodies):
-        if b.convention == "mcpc" and b.kind in (0, 1) and not b.inputs:
-            bodies[i] = dataclasses.replace(b, inputs=(zero,))
     return robot.replace(bodies=tuple(bodies), closure=None, gains=None, coupling_joint=None, coupling_motor=None,
                          joint_names=robot.joint_names + tuple(f"j{b}" for b in c.free))
 
 
 def tree_frames(robot: Robot, a, qj, theta_free) -> Pose:
     """All body frames of the open tree for joint variables qj (actuated) and theta_free."""
-    tree = open_tree(robot)
-    theta = jnp.concatenate([qj, theta_free, jnp.zeros(1, dtype=theta_free.dtype)])
-    if tree.bodies[0].convention == "planar":
-        from jaxcal.closure.planar import planar_frames
-
-        return planar_frames(tree, a, theta)
-    return frames_single(tree, a, theta)
+    return frames_single(open_tree(robot), a, jnp.concatenate([qj, theta_free]))
 
 
 def euler_parameters(R):
@@ -251,7 +242,7 @@ def _solve_batched(robot: Robot, a, q, start) -> ClosureSolution:
     def one(qi):
         return _solve_single(robot, a, joint_variables(robot, a, qi), start)
 
-    return _batched(one, q)
+    return map_leading_axes(one, q)
 
 
 def solve(robot: Robot, a, q, start=None) -> ClosureSolution:
@@ -260,7 +251,7 @@ def solve(robot: Robot, a, q, start=None) -> ClosureSolution:
     start: theta_free start (default `robot.closure.start_fn(a, qj)` per sample when set, else
     `robot.closure.start`, the robot's assembly mode).
     """
-    _check(robot)
+    checked_closure(robot)
     a = jnp.asarray(a, dtype=jnp.float64)
     q = jnp.asarray(q, dtype=jnp.float64)
     return _solve_batched(robot, a, q, _start(robot, start))
@@ -278,7 +269,7 @@ def _forward_single(robot: Robot, a, qi, start) -> Pose:
 
 @functools.partial(jax.jit, static_argnums=0)
 def _forward_batched(robot: Robot, a, q, start) -> Pose:
-    return _batched(lambda qi: _forward_single(robot, a, qi, start), q)
+    return map_leading_axes(lambda qi: _forward_single(robot, a, qi, start), q)
 
 
 def forward_closed(robot: Robot, a, q, start=None) -> Pose:
@@ -287,7 +278,7 @@ def forward_closed(robot: Robot, a, q, start=None) -> Pose:
     A sample whose loops do not close (|v| > tol) has FAIL_OFFSET added to its position; check
     `solve(...).ok` or `closed(...)` for the flags.
     """
-    _check(robot)
+    checked_closure(robot)
     a = jnp.asarray(a, dtype=jnp.float64)
     q = jnp.asarray(q, dtype=jnp.float64)
     return _forward_batched(robot, a, q, _start(robot, start))

@@ -1,35 +1,16 @@
-"""Planar bodies with absolute joint angles: the parametrisation of the thesis' 2-D four-bar (seed 004 §2.5).
+"""Robots of planar bodies with absolute joint angles: the thesis' 2-D four-bar (seed 004 §2.5).
 
-Each body j carries a length a_j and an angle offset phi_j; its frame has the absolute angle
-psi_j = theta_j + phi_j (theta_j its joint variable, 0 for a joint without one) and its origin is
-at the end of its predecessor's link: r_j = r_pred + a_pred (cos psi_pred, sin psi_pred, 0), with
-r_j = 0 for a body on the base (eq 2.72-2.76). The parameter vector is (a_1..a_N, phi_1..phi_N).
+The bodies use the "planar" convention (`jaxcal.kin.joints.planar`): body j carries a length a_j and
+an angle offset phi_j, its frame has the absolute angle theta_j + phi_j and sits at the end of its
+predecessor's link (eq 2.72-2.76). The parameter vector is (a_1..a_N, phi_1..phi_N).
 """
 
 from __future__ import annotations
 
-import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.closure.core import Closure
 from jaxcal.kin.model import Body, Robot
-from jaxcal.kin.pose import Pose
-from jaxcal.kin.rotations import rot_z
-
-
-def planar_frames(robot: Robot, a, theta) -> Pose:
-    """Frames of every planar body for joint variables theta (indexed by Body.inputs)."""
-    psi, pos = [], []
-    zero = jnp.zeros((), dtype=jnp.float64)
-    for b in robot.bodies:
-        th = theta[b.inputs[0]] if b.inputs else zero
-        psi.append(a[b.rows[1]] + th)
-        if b.parent < 0:
-            pos.append(jnp.zeros(3, dtype=jnp.float64))
-        else:
-            length, angle = a[robot.bodies[b.parent].rows[0]], psi[b.parent]
-            pos.append(pos[b.parent] + length * jnp.stack([jnp.cos(angle), jnp.sin(angle), zero]))
-    return Pose(jnp.stack([rot_z(s) for s in psi]), jnp.stack(pos))
 
 
 def planar_robot(name, lengths, offsets, predecessors, actuated, closure: Closure, tip, home=None,

@@ -44,9 +44,7 @@ def prismatic_joints(robot) -> tuple[str, ...]:
     """Names of the robot's prismatic joint inputs: their CSV values are lengths, not angles."""
     out = []
     for body in robot.bodies:
-        kind = body.kind[0] if isinstance(body.kind, tuple) else body.kind
-        is_prismatic = kind == "prismatic" or (body.convention in ("mdh", "mcpc") and kind == 1)
-        if is_prismatic and len(body.inputs) == 1:
+        if body.conv.is_prismatic(body.kind) and len(body.inputs) == 1:
             out.append(robot.joint_names[body.inputs[0]])
     return tuple(out)
 

@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.kin.conventions import pry_motion
+from jaxcal.kin.joints.pry import PRY, pry_motion
 from jaxcal.kin.model import Robot
 from jaxcal.kin.rotations import matrix_to_pry, matrix_to_pry_acos, matrix_to_pry_atan2, pry_to_matrix, skew, vect
 
@@ -79,7 +79,7 @@ class ModuleState:
 def chain_of(robot: Robot) -> tuple[Chain, ModuleState]:
     """Structure and nominal module state of a serial robot built from PRY modules (seed 000 §3.2)."""
     for i, body in enumerate(robot.bodies):
-        if body.convention != "pry" or body.parent != i - 1 or -1 in body.rows:
+        if body.conv is not PRY or body.parent != i - 1 or -1 in body.rows:
             raise ValueError(f"linear formulation needs a serial chain of PRY modules; body {i} ({body.name!r}) is "
                              f"{body.convention!r} with parent {body.parent}")
     if robot.gains is not None or robot.closure is not None or robot.tip not in (-1, len(robot.bodies) - 1):

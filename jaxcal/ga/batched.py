@@ -19,14 +19,14 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.kin.conventions import PRY_KINDS
+from jaxcal.kin.joints.pry import PRY
 
 
 def supports(robot, device) -> bool:
     """Whether the population path models this robot/device exactly (else use the vmapped path)."""
     serial = all(b.parent == i - 1 for i, b in enumerate(robot.bodies)) and robot.tip in (-1, len(robot.bodies) - 1)
     return (robot.closure is None and robot.gains is None and robot.coupling_joint is None and robot.coupling_motor is None
-            and serial and all(b.convention == "pry" and b.kind in PRY_KINDS for b in robot.bodies)
+            and serial and all(b.conv is PRY and b.kind in PRY.kinds for b in robot.bodies)
             and device.kind in ("pose", "position"))
 
 

@@ -55,11 +55,7 @@ G_HAT = np.array([0.0, 0.0, -1.0])  # gravity direction in the robot base frame 
 
 
 def _is_revolute(body) -> bool:
-    if body.convention == "pry":
-        return body.kind in ("revolute", "cylindrical", "universal", "spherical")
-    if body.convention == "urdf":  # kind = (joint type, axis); continuous joints load as "revolute"
-        return body.kind[0] == "revolute"
-    return int(body.kind) == 0
+    return body.conv.is_revolute(body.kind)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -226,11 +222,10 @@ def joint_axes(model: GapModel, F):
     pts, dirs = [], []
     for b in model.joint_body:
         body = robot.bodies[b]
-        axis = np.asarray(body.kind[1], float) if body.convention == "urdf" else np.array([0.0, 0.0, 1.0])
-        dirs.append(F.R[b] @ axis)  # URDF joints turn about their own axis, the others about z
-        if body.convention == "pry":  # the module rotates about its parent's origin (seed 000 eq 3.45)
+        dirs.append(F.R[b] @ body.conv.joint_axis(body.kind))
+        if body.conv.axis_through_parent_origin(body.kind):  # e.g. a PRY module (seed 000 eq 3.45)
             pts.append(root if body.parent < 0 else F.p[body.parent])
-        else:  # MDH / MCPC / URDF: the joint axis passes through the body's own origin
+        else:
             pts.append(F.p[b])
     return jnp.stack(pts), jnp.stack(dirs)
 

@@ -1,10 +1,11 @@
 """Robot description (static structure + flat parameter table) and the one tree evaluator.
 
-A robot is a tree of bodies. Body i has a parent (-1 = the base frame), a convention, a kind, the
-indices of its parameter row inside the flat vector `a`, and the indices of the joint inputs it
-consumes. `frames(robot, a, q)` composes the local transforms from the base outwards and
-returns every body frame; `forward(robot, a, q)` returns the tool frame. Both jit and vmap;
-leading batch axes of `q` are mapped over.
+A robot is a tree of bodies. Body i has a parent (-1 = the base frame), a convention (the name of a
+registered `jaxcal.kin.convention.Convention`), a kind, the indices of its parameter row inside the
+flat vector `a`, and the indices of the joint inputs it consumes. `frames(robot, a, q)` composes
+the conventions' local transforms from the base outwards and returns every body frame;
+`forward_open(robot, a, q)` returns the tool frame. Both jit and vmap; leading batch axes of `q`
+are mapped over.
 
 Parameters carry a unit kind ("length", "angle", "gain", "scale"), a free/fixed flag and a
 priority (seed 001 §2.2: higher priority columns are kept first in the base set; 0 = never
@@ -21,7 +22,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.kin import conventions as cv
+import jaxcal.kin.joints  # noqa: F401  (registers the built-in conventions)
+from jaxcal.kin.convention import Convention, get_convention
 from jaxcal.kin.pose import Pose
 
 UNIT_KINDS = ("length", "angle", "gain", "scale")
@@ -32,11 +34,16 @@ class Body:
     """Static description of one body/frame of the tree."""
 
     name: str
-    convention: str  # "pry" | "mdh" | "mcpc" | "urdf"
-    kind: Any  # PRY joint kind (str), MDH sigma (int), MCPC type (int) or URDF (type, axis)
+    convention: str  # registry name of the convention, e.g. "pry", "mdh", "mcpc", "urdf", "planar"
+    kind: Any  # joint kind in that convention: PRY kind (str), MDH sigma / MCPC type (int), URDF (type, axis)
     parent: int  # index of the parent body, -1 for the base frame
     rows: tuple[int, ...]  # indices of this body's parameter row in `a`; -1 = constant zero
-    inputs: tuple[int, ...] = ()  # indices into the joint-variable vector
+    inputs: tuple[int, ...] = ()  # indices into the joint-variable vector; none: the joint stays at 0
+
+    @property
+    def conv(self) -> Convention:
+        """The registered convention object named by `convention`."""
+        return get_convention(self.convention)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -118,27 +125,33 @@ def joint_variables(robot: Robot, a, q):
     return qm
 
 
-def local_transform(body: Body, row, qv) -> Pose:
-    if body.convention == "pry":
-        return cv.pry_module(row, body.kind, qv)
-    if body.convention == "mdh":
-        return cv.mdh_frame(row, body.kind, qv)
-    if body.convention == "mcpc":
-        return cv.mcpc_frame(row, body.kind, qv)
-    if body.convention == "urdf":
-        return cv.urdf_joint(row, body.kind, qv)
-    raise ValueError(f"unknown convention {body.convention!r}")
+def body_row(body: Body, a_ext):
+    """The body's parameter row from a_ext = (a, 0): index -1 reads the constant zero."""
+    return a_ext[jnp.array(body.rows)] if body.rows else jnp.zeros(0, a_ext.dtype)
+
+
+def body_joint_values(body: Body, qj):
+    """The body's joint values from qj; a body with no inputs holds its joint variables at 0."""
+    if body.inputs:
+        return qj[jnp.array(body.inputs)]
+    return jnp.zeros(body.conv.n_inputs(body.kind), qj.dtype)
 
 
 def frames_single(robot: Robot, a, qj) -> Pose:
     """Every body frame in the world, for one vector of joint variables qj. Returns stacked Pose."""
     root = robot.base if robot.base is not None else Pose.identity()
-    Rs, ps = [], []
-    a_ext = jnp.append(a, 0.0)  # index -1 reads the constant zero of unused row entries
+    Rs, ps, rows, qvs = [], [], [], []
+    a_ext = jnp.append(a, 0.0)
     for body in robot.bodies:
-        row = a_ext[jnp.array(body.rows)] if body.rows else jnp.zeros(0)
-        qv = qj[jnp.array(body.inputs)] if body.inputs else jnp.zeros(0)
-        local = local_transform(body, row, qv)
+        conv = body.conv
+        row, qv = body_row(body, a_ext), body_joint_values(body, qj)
+        rows.append(row)
+        qvs.append(qv)
+        if conv.reads_parent:  # absolute joint angles: the parent's row and values come first
+            up = body.parent
+            row = jnp.concatenate([rows[up] if up >= 0 else jnp.zeros_like(row), row])
+            qv = jnp.concatenate([qvs[up] if up >= 0 else jnp.zeros_like(qv), qv])
+        local = conv.local_transform(row, body.kind, qv)
         parent = root if body.parent < 0 else Pose(Rs[body.parent], ps[body.parent])
         world = parent.compose(local)
         Rs.append(world.R)
@@ -146,8 +159,8 @@ def frames_single(robot: Robot, a, qj) -> Pose:
     return Pose(jnp.stack(Rs), jnp.stack(ps))
 
 
-def _batched(fn, q):
-    """Apply fn over all leading axes of q (..., n_inputs)."""
+def map_leading_axes(fn, q):
+    """Apply fn, written for one joint vector (n_inputs,), over all leading axes of q (..., n_inputs)."""
     q = jnp.asarray(q)
     if q.ndim == 1:
         return fn(q)
@@ -164,7 +177,7 @@ def frames(robot: Robot, a, q) -> Pose:
     def one(qi):
         return frames_single(robot, a, joint_variables(robot, a, qi))
 
-    return _batched(one, jnp.asarray(q, dtype=jnp.float64))
+    return map_leading_axes(one, jnp.asarray(q, dtype=jnp.float64))
 
 
 def forward_open(robot: Robot, a, q) -> Pose:

@@ -1,0 +1,52 @@
+"""Khalil-Kleinfinger modified DH with Hayati's beta (seed 001 eq 2-3).
+
+row = (alpha, d, theta, r, beta); T = Rot(y, beta) Rot(x, alpha) Trans(x, d) Rot(z, theta) Trans(z, r).
+The kind is sigma: 0 rotary (the joint variable adds to theta), 1 prismatic (adds to r), 2 a
+constant frame.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from jaxcal.kin.convention import Convention, register
+from jaxcal.kin.pose import Pose
+from jaxcal.kin.rotations import rot_x, rot_y, rot_z
+
+MDH_ROW = ("alpha", "d", "theta", "r", "beta")
+_THETA, _R = 2, 3
+
+
+def mdh_frame(row, sigma: int, qv) -> Pose:
+    """Khalil-Kleinfinger frame with Hayati beta (seed 001 eq 3); qv = (joint variable,) or ()."""
+    alpha, d, theta, r, beta = row
+    if sigma == 0:
+        theta = theta + qv[0]
+    elif sigma == 1:
+        r = r + qv[0]
+    R = rot_y(beta) @ rot_x(alpha) @ rot_z(theta)
+    p = rot_y(beta) @ (jnp.stack([d, 0.0 * d, 0.0 * d]) + rot_x(alpha) @ jnp.stack([0.0 * r, 0.0 * r, r]))
+    return Pose(R, p)
+
+
+class ModifiedDH(Convention):
+    """Seed 001 frames; the joint moves along or about the body's own z axis."""
+
+    name = "mdh"
+    row_names = MDH_ROW
+    kinds = (0, 1, 2)
+
+    def local_transform(self, row, kind, qv) -> Pose:
+        return mdh_frame(row, kind, qv)
+
+    def n_inputs(self, kind) -> int:
+        return 1 if kind in (0, 1) else 0
+
+    def is_prismatic(self, kind) -> bool:
+        return kind == 1
+
+    def joint_row_index(self, kind) -> int | None:
+        return {0: _THETA, 1: _R}.get(kind)
+
+
+register(ModifiedDH())

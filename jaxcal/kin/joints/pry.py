@@ -1,0 +1,74 @@
+"""PRY six-parameter modules (seed 000 §3.2, eq 3.43-3.48, Table 3.3).
+
+row = (bx, by, bz, pitch, roll, yaw). The module rotation is R = Rs Rm with Rs = Rx Ry Rz of the
+PRY angles and Rm the motion part of the joint kind; the body vector b = bs + bm is expressed after
+the rotation, so the local transform is (Rs Rm, Rs Rm b) and p_{n+1} = b0 + sum_i R_0i b_i
+(eq 3.43). Because b is rotated with the module, the joint turns about the parent's origin.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from jaxcal.kin.convention import Convention, register
+from jaxcal.kin.pose import Pose
+from jaxcal.kin.rotations import pry_to_matrix, rot_x, rot_y, rot_z
+
+# Joint kinds of seed 000 Table 3.3 and how many joint inputs each consumes.
+PRY_KINDS = {"revolute": 1, "prismatic": 1, "cylindrical": 2, "universal": 2, "spherical": 3, "fixed": 0}
+PRY_ROW = ("bx", "by", "bz", "pitch", "roll", "yaw")
+_BZ, _YAW = 2, 5
+
+
+def pry_motion(kind: str, qv):
+    """(Rm, bm) of seed 000 Table 3.3 for joint values qv (length PRY_KINDS[kind])."""
+    zero3 = jnp.zeros(3, dtype=jnp.result_type(float))
+    if kind == "revolute":
+        return rot_z(qv[0]), zero3
+    if kind == "prismatic":
+        return jnp.eye(3), zero3.at[2].set(qv[0])
+    if kind == "cylindrical":
+        return rot_z(qv[0]), zero3.at[2].set(qv[1])
+    if kind == "universal":
+        return rot_z(qv[0]) @ rot_y(qv[1]), zero3
+    if kind == "spherical":
+        return rot_z(qv[0]) @ rot_y(qv[1]) @ rot_x(qv[2]), zero3
+    if kind == "fixed":
+        return jnp.eye(3), zero3
+    raise ValueError(f"unknown PRY joint kind {kind!r}; expected one of {sorted(PRY_KINDS)}")
+
+
+def pry_module(row, kind: str, qv) -> Pose:
+    """Local transform (Rs Rm, Rs Rm (bs + bm)) of one six-parameter module (eq 3.45-3.48)."""
+    Rm, bm = pry_motion(kind, qv)
+    R = pry_to_matrix(row[3:6]) @ Rm
+    return Pose(R, R @ (row[0:3] + bm))
+
+
+class PryModules(Convention):
+    """Seed 000 modules: Rs Rz(q) = Rx Ry Rz(yaw + q), so a rotary variable offsets yaw; a sliding
+    one adds to bz."""
+
+    name = "pry"
+    row_names = PRY_ROW
+    kinds = tuple(PRY_KINDS)
+
+    def local_transform(self, row, kind, qv) -> Pose:
+        return pry_module(row, kind, qv)
+
+    def n_inputs(self, kind) -> int:
+        return PRY_KINDS[kind]
+
+    def is_prismatic(self, kind) -> bool:
+        return kind == "prismatic"
+
+    def joint_row_index(self, kind) -> int | None:
+        if kind == "fixed":
+            return None
+        return _BZ if kind == "prismatic" else _YAW
+
+    def axis_through_parent_origin(self, kind) -> bool:
+        return True
+
+
+PRY = register(PryModules())

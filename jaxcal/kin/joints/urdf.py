@@ -1,0 +1,81 @@
+"""URDF joints (issue 8): row = (x, y, z, roll, pitch, yaw, offset); kind = (joint type, axis).
+
+T = Trans(xyz) Rot(rpy) Motion(axis, q + offset) with Rot(rpy) = Rz(yaw) Ry(pitch) Rx(roll) (the
+URDF fixed-axis order, not the seed's PRY) and Motion a rotation about, or a slide along, the unit
+axis given in the joint's own frame.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxcal.kin.convention import Convention, register
+from jaxcal.kin.pose import Pose
+from jaxcal.kin.rotations import rot_x, rot_y, rot_z
+
+URDF_ROW = ("x", "y", "z", "roll", "pitch", "yaw", "offset")
+URDF_TYPES = ("revolute", "prismatic", "fixed")
+_OFFSET = 6
+
+
+def rpy_to_matrix(rpy):
+    """URDF origin rotation: fixed-axis X-Y-Z, R = Rz(yaw) Ry(pitch) Rx(roll) (not the seed's PRY)."""
+    return rot_z(rpy[2]) @ rot_y(rpy[1]) @ rot_x(rpy[0])
+
+
+def axis_rotation(axis, angle):
+    """Rotation by `angle` about the constant unit vector `axis` (Rodrigues' formula)."""
+    x, y, z = (float(c) for c in axis)
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return jnp.eye(3) + jnp.sin(angle) * K + (1.0 - jnp.cos(angle)) * (K @ K)
+
+
+def urdf_joint(row, kind, qv) -> Pose:
+    """URDF joint transform T = Trans(xyz) Rot(rpy) Motion(axis, q + offset).
+
+    kind = (type, axis) with type "revolute" (continuous too), "prismatic" or "fixed" and axis
+    a unit 3-tuple; the offset shifts the joint zero (angle or length). A revolute row may carry an
+    eighth entry, a compliance k (rad/(N m)): the angle becomes q + offset + k tau with the gravity
+    torque tau as a second joint input (`jaxcal.robots.urdf.with_gravity_compliance`).
+    """
+    joint_type, axis = kind
+    R0 = rpy_to_matrix(row[3:6])
+    if joint_type == "revolute":
+        angle = qv[0] + row[6]
+        if len(row) == 8:  # gravity compliance: qv[1] is the gravity torque, row[7] the compliance
+            angle = angle + row[7] * qv[1]
+        return Pose(R0 @ axis_rotation(axis, angle), row[0:3])
+    if joint_type == "prismatic":
+        return Pose(R0, row[0:3] + R0 @ (np.asarray(axis, float) * (qv[0] + row[6])))
+    if joint_type == "fixed":
+        return Pose(R0, row[0:3])
+    raise ValueError(f"unknown URDF joint type {joint_type!r}; expected one of {URDF_TYPES}")
+
+
+class UrdfJoints(Convention):
+    """URDF joints: the joint variable adds to the offset and moves along the joint's own axis.
+    A compliant revolute joint takes the gravity torque as an extra input (not counted by n_inputs)."""
+
+    name = "urdf"
+    row_names = URDF_ROW
+    kinds = tuple((t, (0.0, 0.6, 0.8)) for t in URDF_TYPES)
+    file_format = "urdf"
+
+    def local_transform(self, row, kind, qv) -> Pose:
+        return urdf_joint(row, kind, qv)
+
+    def n_inputs(self, kind) -> int:
+        return 0 if kind[0] == "fixed" else 1
+
+    def is_prismatic(self, kind) -> bool:
+        return kind[0] == "prismatic"
+
+    def joint_row_index(self, kind) -> int | None:
+        return None if kind[0] == "fixed" else _OFFSET
+
+    def joint_axis(self, kind) -> np.ndarray:
+        return np.asarray(kind[1], float)
+
+
+register(UrdfJoints())
