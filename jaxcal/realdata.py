@@ -240,11 +240,11 @@ def point_errors(fit, real: RealData, idx) -> np.ndarray:
     """TIAGo: 3-D error (mm) of each of the three marker points, (len(idx), 3): from the fitted
     marker pose applied to the triad's mean shape (pose data), or of each fitted point (`with_markers`)."""
     idx = np.asarray(idx)
-    if real.data.device.kind == "multi_position":
-        pred = fit.predict(real.data.q[idx])
-    else:
+    if real.data.device.marker_reading == "frame":
         T = fit.predict(real.data.q[idx])
         pred = np.einsum("nij,kj->nki", T[:, :3, :3], real.extra["triad"]) + T[:, None, :3, 3]
+    else:
+        pred = real.data.device.points(fit.predict(real.data.q[idx]))
     return np.linalg.norm(pred - real.extra["points"][idx], axis=-1) * 1e3
 
 
@@ -259,7 +259,7 @@ def choose_prior(real: RealData, train, grid=MU_GRID, weights: bool = False, inn
     the training samples `train` only: the outer held-out fold is never seen."""
     train = np.asarray(train)
     inner = fold_indices(len(train), inner_folds, seed)
-    if not weights or "sigma_orientation" in fit_options or real.data.device.kind != "pose":
+    if not weights or "sigma_orientation" in fit_options or real.data.device.marker_reading != "frame":
         sigmas = [fit_options.pop("sigma_orientation", SIGMA_ORIENTATION[real.name])]
     else:
         sigmas = [SIGMA_ORIENTATION[real.name] * f for f in SIGMA_FACTORS]
@@ -276,6 +276,11 @@ def choose_prior(real: RealData, train, grid=MU_GRID, weights: bool = False, inn
     return {"mu": float(mu), "sigma_orientation": float(so)}
 
 
+def _markers_label(real: RealData) -> str:
+    """The label suffix "+markers" for data read as several marker points per sample (`with_markers`), else ""."""
+    return "+markers" if real.data.device.marker_reading == "points" else ""
+
+
 def cross_validate(real: RealData, setting: str, folds: int = 5, seed: int = 0, grid=MU_GRID, **fit_options) -> dict:
     """k-fold cross-validation of one setting: train RMS (mean over folds) and held-out RMS pooled
     over all held-out samples (position mm; orientation deg for pose data), the parameters estimated,
@@ -284,7 +289,7 @@ def cross_validate(real: RealData, setting: str, folds: int = 5, seed: int = 0, 
     if setting.endswith("+markers"):
         real, setting = with_markers(real), setting.removesuffix("+markers")
     if setting == "nested":
-        label = "nested" + ("+markers" if real.data.device.kind == "multi_position" else "")
+        label = "nested" + _markers_label(real)
         return nested_cross_validate(real, engineer_variants(real), folds, seed, label=label)
     if setting.endswith("+compliance"):
         real, setting = with_compliance(real), setting.removesuffix("+compliance")
@@ -300,7 +305,7 @@ def cross_validate(real: RealData, setting: str, folds: int = 5, seed: int = 0, 
             mus.append(chosen)
         per_fold.append((fit_on(real, setting.removesuffix("+weights"), train, mu, **options), real, train, held))
     label = (setting + ("+compliance" if "compliance_of" in real.robot.extras else "")
-             + ("+markers" if real.data.device.kind == "multi_position" else ""))
+             + _markers_label(real))
     out = _cv_summary(label, per_fold, time.perf_counter() - t0)
     if mus:
         out["chosen_per_fold"] = mus
@@ -393,7 +398,7 @@ def fit_variant(real: RealData, variant: Variant, train, noise_sigmas: dict | No
         real = with_compliance(real)
     noise_sigmas = {} if noise_sigmas is None else noise_sigmas
     options = {}
-    if real.data.device.kind == "pose":
+    if real.data.device.marker_reading == "frame":
         so = variant.orientation
         if so == "noise ratio" and variant.compliance not in noise_sigmas:
             noise_sigmas[variant.compliance] = noise_ratio_sigma(real, train)
@@ -430,7 +435,7 @@ def engineer_variants(real: RealData, mu_grid=MU_GRID) -> tuple[Variant, ...]:
     over mu_grid; a-priori or noise-ratio orientation weight (pose data); with or without joint
     compliance under gravity; with or without Huber re-weighting."""
     models = [("full", None)] + [("prior", mu) for mu in mu_grid]
-    weights = ("a priori", "noise ratio") if real.data.device.kind == "pose" else ("a priori",)
+    weights = ("a priori", "noise ratio") if real.data.device.marker_reading == "frame" else ("a priori",)
     return tuple(Variant(s, mu, w, c, r) for s, mu in models for w in weights for c in (False, True) for r in (False, True))
 
 

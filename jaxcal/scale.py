@@ -43,7 +43,7 @@ def identify_fleet(robot, datasets, devices=None, sigma_position=1e-3, sigma_ori
     """
     t0 = time.perf_counter()
     n = len(datasets[0])
-    if any(len(d) != n or d.device.kind != datasets[0].device.kind for d in datasets):
+    if any(len(d) != n or type(d.device) is not type(datasets[0].device) for d in datasets):
         raise ValueError("identify_fleet needs datasets of equal size and device kind")
     kw = dict(sigma_position=sigma_position, sigma_orientation=sigma_orientation)
     ref = identify(robot, datasets[0], solver=solver, max_steps=max_steps, rtol=rtol, atol=atol, **kw)

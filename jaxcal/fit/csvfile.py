@@ -225,7 +225,7 @@ def find_layout(header, path, joints=None, position_columns=None, marker=None, c
     return Layout(list(joints), position, kind, ocols, cov, markers)
 
 
-def _rotations(kind, block, lines, path, angle_scale):
+def rotations_from_columns(kind, block, lines, path, angle_scale):
     """(N, 3, 3) rotation matrices from the orientation columns; errors name the line."""
     from scipy.spatial.transform import Rotation
 

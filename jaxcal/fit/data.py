@@ -5,35 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 from jaxcal.fit.csvfile import DataError, UnitWarning  # noqa: F401  (re-exported)
-from jaxcal.measure.devices import Device, make_device
-
-
-def _as_device(device, y=None) -> Device:
-    """A Device from a Device or a kind name; "multi_position" (or "markers") by name takes its
-    number of points K from readings y of shape (N, K, 3)."""
-    if isinstance(device, Device):
-        return device
-    if device in ("multi_position", "markers"):
-        shape = np.shape(y) if y is not None else ()
-        if len(shape) != 3 or shape[2] != 3:
-            raise DataError(f"multi_position readings must have shape (N, K points, 3), got {shape or None}")
-        return make_device(device, points=shape[1])
-    return make_device(device)
+from jaxcal.measure import Device, as_device, device_class, make_device
 
 
 def _canonical_readings(device: Device, y, R, p, n: int):
     """Readings as an array of shape (N, *device.reading_shape)."""
-    if device.kind == "pose" and y is None:
-        if R is None or p is None:
-            raise DataError("pose data needs y=(N, 4, 4) or both R=(N, 3, 3) and p=(N, 3)")
-        R, p = np.asarray(R, float), np.asarray(p, float)
-        y = np.zeros((len(R), 4, 4))
-        y[:, :3, :3], y[:, :3, 3], y[:, 3, 3] = R, p, 1.0
-    if y is None:
-        raise DataError(f"{device.kind} data needs readings y")
-    y = np.asarray(y, float)
-    if device.kind == "pose" and y.shape[1:] == (3, 4):
-        y = np.concatenate([y, np.broadcast_to([[[0, 0, 0, 1.0]]], (len(y), 1, 4))], axis=1)
+    y = device.readings(y, R, p)
     if y.shape != (n,) + device.reading_shape:
         raise DataError(f"{device.kind} readings must have shape (N={n}, {', '.join(map(str, device.reading_shape))}), got {y.shape}")
     return y
@@ -54,7 +31,7 @@ class Dataset:
     """
 
     def __init__(self, q, y=None, device="position", covariates=None, R=None, p=None, joint_names=None, source=None):
-        self.device = _as_device(device, y)
+        self.device = as_device(device, y)
         q = np.asarray(q, float)
         if q.ndim == 1:
             q = q[:, None]
@@ -118,17 +95,17 @@ class Dataset:
         if angle_unit is not None and angle_unit not in cf.ANGLE_SCALE:
             raise DataError(f"{path}: angle_unit must be 'rad' or 'deg', got {angle_unit!r}")
         head = cf.read_table(path, delimiter, header_only=True)  # the columns first, then the rows
-        multi = device in ("multi_position", "markers") or (isinstance(device, Device) and device.kind == "multi_position")
-        if multi:
+        dev_class = None if device is None else type(device) if isinstance(device, Device) else device_class(device)
+        reading = None if dev_class is None else dev_class.marker_reading
+        if reading == "points":
             return cls._multi_marker_csv(path, head.header, device, joints, marker, length_unit, angle_unit, covariates,
                                          delimiter, check_units, prismatic)
-        kind = None if device is None else _as_device(device).kind
-        lay = cf.find_layout(head.header, path, joints, position_columns, marker, covariates, orientation=kind != "position")
-        if kind == "pose" and lay.orientation is None:
-            raise DataError(f"{path}: device 'pose' needs orientation columns "
+        lay = cf.find_layout(head.header, path, joints, position_columns, marker, covariates, orientation=reading != "point")
+        if reading == "frame" and lay.orientation is None:
+            raise DataError(f"{path}: device {dev_class.kind!r} needs orientation columns "
                             "(phix, phiy, phiz / rvx, rvy, rvz / qw, qx, qy, qz / r11..r33)")
-        if kind not in (None, "position", "pose"):
-            raise DataError(f"{path}: CSV readings are positions or poses, not {kind!r}")
+        if dev_class is not None and reading not in ("point", "frame"):
+            raise DataError(f"{path}: CSV readings are positions or poses, not {dev_class.kind!r}")
         cols = lay.joints + lay.position + lay.orientation_columns + list(lay.covariates.values())
         tab = cf.read_table(path, delimiter, needed=cols)
         length = cf.resolve_unit("length", length_unit, tab.units.get("length"), path)
@@ -143,7 +120,7 @@ class Dataset:
         q = q_raw * cf.joint_scale(lay.joints, prismatic, length, angle)
         cov = {name: tab.values[:, col[c]] for name, c in lay.covariates.items()}
         if lay.orientation is not None:
-            R = cf._rotations(lay.orientation, block(lay.orientation_columns), tab.lines, path, cf.ANGLE_SCALE[angle])
+            R = cf.rotations_from_columns(lay.orientation, block(lay.orientation_columns), tab.lines, path, cf.ANGLE_SCALE[angle])
             ds = cls(q=q, R=R, p=p, device=device or "pose", covariates=cov, joint_names=lay.joints, source=path)
         else:
             ds = cls(q=q, y=p, device=device or "position", covariates=cov, joint_names=lay.joints, source=path)
@@ -194,11 +171,12 @@ class Dataset:
         from jaxcal.fit import csvfile as cf
         from jaxcal.io_atomic import write_text_atomic
 
-        if self.device.kind not in ("position", "pose"):
+        reading = self.device.marker_reading
+        if reading not in ("point", "frame"):
             raise DataError(f"to_csv writes position or pose data, not {self.device.kind!r}")
         joints = list(joints or self.joint_names or [f"q{i + 1}" for i in range(self.q.shape[1])])
         ls, an = 1.0 / cf.LENGTH_SCALE[length_unit], 1.0 / cf.ANGLE_SCALE[angle_unit]
-        if self.device.kind == "position":
+        if reading == "point":
             meas, names = self.y * ls, ["x", "y", "z"]
         else:
             rpy = Rotation.from_matrix(self.y[:, :3, :3]).as_euler("xyz") * an

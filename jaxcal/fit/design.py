@@ -28,13 +28,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.fit.base import base_set
-from jaxcal.fit.data import _as_device
 from jaxcal.fit.identifiable import observability_indices
 from jaxcal.fit.identify import residual_weights, residuals
 from jaxcal.fit.methods import METHODS, n_rows, observation_matrix
 from jaxcal.fit.simulate import random_configurations
 from jaxcal.forward import forward
 from jaxcal.kin.model import Robot
+from jaxcal.measure import as_device
 
 INDICES = ("menq_borm", "min_singular", "condition", "noise_amplification")
 SINGLE_CONFIG_METHODS = ("position", "location")
@@ -96,7 +96,7 @@ def configuration_blocks(robot: Robot, method_or_device, Q, a=None):
         W = observation_matrix(robot, method_or_device, a, jnp.zeros(0), Q, Q, Y)
         rows = n_rows(method_or_device)
         return np.asarray(W).reshape(len(Q), rows, -1), tuple(robot.names), np.asarray(robot.priority, float)
-    device = _as_device(method_or_device)
+    device = as_device(method_or_device)
     a_full = jnp.concatenate([robot.nominal if a is None else jnp.asarray(a, dtype=jnp.float64), device.nominal])
     w = residual_weights(device, 1.0, 1.0)
     Y = jax.vmap(device.read, (0, None))(forward(robot, a_full[: robot.n_params], Q), a_full[robot.n_params:])

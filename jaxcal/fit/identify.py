@@ -30,16 +30,8 @@ residuals = core.residuals
 
 
 def residual_weights(device: Device, sigma_position=1e-3, sigma_orientation=1e-3):
-    """Per-component weights 1/sigma for one sample's residual vector."""
-    if device.kind in ("position", "three_point", "multi_position"):
-        return jnp.full(3 * device.n_points, 1.0 / sigma_position)
-    if device.kind == "pose":
-        return jnp.concatenate([jnp.full(3, 1.0 / sigma_position), jnp.full(3, 1.0 / sigma_orientation)])
-    if device.kind == "theodolite":
-        return jnp.full(2, 1.0 / sigma_orientation)
-    if device.kind == "laser_range":
-        return jnp.full(1, 1.0 / sigma_position)
-    return jnp.full(3, 1.0 / sigma_orientation)
+    """Per-component weights 1/sigma for one sample's residual vector (`Device.weights`)."""
+    return device.weights(sigma_position, sigma_orientation)
 
 
 @functools.lru_cache(maxsize=16)
@@ -164,7 +156,7 @@ class FitResult:
         o = ""
         if self.orientation_rms_after is not None and self.rms_after == self.rms_after:
             o = f"; orientation {self.orientation_rms_before:.4g} -> {self.orientation_rms_after:.4g} mrad"
-        unit = "mrad" if self.device.kind in ("orientation", "theodolite") else "mm"
+        unit = self.device.error_unit
         lines = [
             f"identified {len(self.estimated)} parameters of {self.robot.name} from "
             f"{self.info.get('n_samples', '?')} {self.device.kind} samples",

@@ -6,9 +6,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.fit.data import Dataset, _as_device
+from jaxcal.fit.data import Dataset
 from jaxcal.forward import forward
-from jaxcal.kin.rotations import exp_so3
+from jaxcal.measure import as_device
 
 
 def random_configurations(robot, n: int, seed: int = 0, margin: float = 0.0):
@@ -50,25 +50,13 @@ def simulate(robot, a_true, q, device="position", noise=None, device_params=None
     rotation vector applied to the reading) standard deviations, as in seed 004 §4.3.
     The returned dataset holds the *recorded* joint values q (without actuator noise).
     """
-    dev = _as_device(device)
+    dev = as_device(device)
     d = dev.nominal if device_params is None else jnp.asarray(device_params, dtype=jnp.float64)
     s_q, s_p, s_r = _noise_levels(noise)
     rng = np.random.default_rng(seed)
     q = np.asarray(q, float)
     q_actual = q + s_q * rng.standard_normal(q.shape)
     tips = forward(robot, jnp.asarray(a_true, dtype=jnp.float64), q_actual)
-    y = np.array(jax.vmap(dev.read, (0, None))(tips, d))
-    if dev.kind in ("position", "three_point", "multi_position"):
-        y = y + s_p * rng.standard_normal(y.shape)
-    elif dev.kind == "pose":
-        y[:, :3, 3] += s_p * rng.standard_normal((len(y), 3))
-        dR = np.asarray(jax.vmap(exp_so3)(jnp.asarray(s_r * rng.standard_normal((len(y), 3)))))
-        y[:, :3, :3] = dR @ y[:, :3, :3]
-    elif dev.kind == "theodolite":  # angle noise (rad) on azimuth and elevation
-        y = y + s_r * rng.standard_normal(y.shape)
-    elif dev.kind == "laser_range":
-        y = y + s_p * rng.standard_normal(y.shape)
-    elif dev.kind == "orientation":
-        dR = np.asarray(jax.vmap(exp_so3)(jnp.asarray(s_r * rng.standard_normal((len(y), 3)))))
-        y = dR @ y
+    y = jax.vmap(dev.read, (0, None))(tips, d)
+    y = np.asarray(dev.add_noise(y, rng.standard_normal, s_p, s_r))
     return Dataset(q=q, y=y, device=dev, joint_names=robot.joint_names)

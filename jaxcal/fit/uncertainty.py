@@ -24,11 +24,11 @@ import numpy as np
 import scipy.stats
 
 from jaxcal.fit import core
-from jaxcal.fit.data import Dataset, _as_device
+from jaxcal.fit.data import Dataset
 from jaxcal.fit.identify import identify, residual_weights, residuals
 from jaxcal.fit.simulate import simulate
 from jaxcal.forward import forward
-from jaxcal.kin.rotations import exp_so3
+from jaxcal.measure import as_device, key_normal
 from jaxcal.shard import over_devices
 
 
@@ -186,18 +186,11 @@ def robust_identify(robot, data: Dataset, c: float = 3.0, iterations: int = 5, *
 def _noisy_readings(robot, device, a_true, d, q, key, s_q, s_p, s_r):
     """One noisy reading set (seed 004 §4.3): actuator noise before the direct model, then
     measurement noise on the device reading."""
-    k1, k2, k3 = jax.random.split(key, 3)
-    q_act = q + s_q * jax.random.normal(k1, q.shape)
+    k_actuator, k_device = jax.random.split(key)
+    q_act = q + s_q * jax.random.normal(k_actuator, q.shape)
     tips = forward(robot, a_true, q_act)
     y = jax.vmap(device.read, (0, None))(tips, d)
-    if device.kind in ("position", "three_point", "multi_position"):
-        return y + s_p * jax.random.normal(k2, y.shape)
-    if device.kind == "pose":
-        dR = jax.vmap(exp_so3)(s_r * jax.random.normal(k3, (y.shape[0], 3)))
-        y = y.at[:, :3, 3].add(s_p * jax.random.normal(k2, (y.shape[0], 3)))
-        return y.at[:, :3, :3].set(dR @ y[:, :3, :3])
-    dR = jax.vmap(exp_so3)(s_r * jax.random.normal(k3, (y.shape[0], 3)))
-    return dR @ y
+    return device.add_noise(y, key_normal(k_device), s_p, s_r)
 
 
 @functools.partial(jax.jit, static_argnames=("robot", "device"))
@@ -263,7 +256,7 @@ def monte_carlo(robot, a_true, q, device="position", noise=None, runs: int = 100
     From nominal it is LM. `devices`: the JAX
     devices to shard the runs over (default: all local devices; [] or one device: no sharding).
     """
-    dev = _as_device(device)
+    dev = as_device(device)
     solver = solver or ("gn_normal" if start == "reference" else "lm")
     noise = noise or {}
     s_q, s_p, s_r = (float(noise.get(k, 0.0)) for k in ("actuator", "position", "orientation"))

@@ -27,7 +27,7 @@ def supports(robot, device) -> bool:
     serial = all(b.parent == i - 1 for i, b in enumerate(robot.bodies)) and robot.tip in (-1, len(robot.bodies) - 1)
     return (robot.closure is None and robot.gains is None and robot.coupling_joint is None and robot.coupling_motor is None
             and serial and all(b.conv is PRY and b.kind in PRY.kinds for b in robot.bodies)
-            and device.kind in ("pose", "position"))
+            and device.marker_reading in ("point", "frame"))
 
 
 # -- 3x3 algebra on tuples of broadcastable entries; Python floats 0.0 / 1.0 are folded at trace time --
@@ -145,7 +145,7 @@ def population_fitness(robot, device, a0, free_idx, pop, q, y, w1=1.0, w2=1.0):
     nr = robot.n_params
     dev = [param(nr + k) for k in range(device.n_params)]
     DR, Dp = exp_so3(dev[3:6]), tuple(dev[0:3])
-    if device.kind == "position":
+    if device.marker_reading == "point":
         marker = mv(R, tuple(dev[6:9]))
         tip = tuple(_add(p[i], marker[i]) for i in range(3))
         target = tuple(_add(Dp[i], v) for i, v in enumerate(mv(DR, tuple(y[:, i, None] for i in range(3)))))

@@ -29,13 +29,13 @@ def full_vector(dg, a0, free_idx):
 
 
 def pose_fitness(robot, device, a_full, q, y, w1=1.0, w2=1.0):
-    """Seed eq 5.3-5.4 for position ("position") or pose ("pose") readings y."""
+    """Seed eq 5.3-5.4 for readings y of one marker point (e.g. "position") or one marker frame (e.g. "pose")."""
     nr = robot.n_params
     tips = forward(robot, a_full[:nr], q)
     pred = jax.vmap(device.read, (0, None))(tips, a_full[nr:])
-    if device.kind == "position":
+    if device.marker_reading == "point":
         return w1 * jnp.sum(jnp.linalg.norm(pred - y, axis=-1))
-    if device.kind != "pose":
+    if device.marker_reading != "frame":
         raise ValueError(f"pose fitness needs a 'position' or 'pose' device, got {device.kind!r}; use fitness='residual'")
     dp = jnp.linalg.norm(pred[:, :3, 3] - y[:, :3, 3], axis=-1)
     dR = rotation_spectral_distance(y[:, :3, :3], pred[:, :3, :3])

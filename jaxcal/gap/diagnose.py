@@ -192,7 +192,7 @@ def _noise_floor_repeats(data, groups):
     counts = np.bincount(groups)
     if np.sum(counts[counts >= 2] - 1) < 6:
         return None
-    p = data.y[:, :3, 3] if data.device.kind == "pose" else data.y
+    p = data.device.points(data.y)
     ss, dof = 0.0, 0
     for g in np.flatnonzero(counts >= 2):
         pg = p[groups == g]
@@ -308,7 +308,7 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
     """Diagnose the sim-to-real gap of `robot` on `data` (position or pose device); see the module docstring."""
     t0 = time.perf_counter()
     device = data.device
-    if device.kind not in ("position", "pose"):
+    if device.marker_reading not in ("point", "frame"):
         raise ValueError(f"gap diagnosis needs a position or pose device, got {device.kind!r}")
     if data.q.shape[1] != robot.n_inputs:
         raise ValueError(f"data has {data.q.shape[1]} joint columns, robot {robot.name!r} has {robot.n_inputs} inputs")
@@ -320,7 +320,7 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
     if n < 12:
         raise ValueError(f"gap diagnosis needs at least 12 samples, got {n}")
     C, present = gf.covariate_matrix(model, data.covariates, n)
-    m = 3 if device.kind == "position" else 6
+    m = len(device.residual_components)
     npad = gf.padded_size(n)
     q = np.tile(robot.home_np, (npad, 1))
     q[:n] = data.q
@@ -333,7 +333,7 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
     groups = _groups(data.q)
     fold = -np.ones(npad, int)
     fold[:n] = _fold_of(groups, folds, seed)
-    pos_comp = np.arange(m) < 3
+    pos_comp = np.array([c == "length" for c in device.residual_components])
 
     comp_sigma = np.where(pos_comp, 1e-3, 1e-3)
     P = model.n_params
@@ -378,9 +378,9 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
     G = cals[folds].estimated
     K_active = gf.active_size(len(G) + MAX_EFFECT_COLUMNS)
     w_all = jnp.asarray(valid[:, None] / comp_sigma[None, :])
-    if device.kind == "pose":  # weight position and orientation by their residual RMS at the baseline
+    if not pos_comp.all():  # weight position and orientation by their residual RMS at the baseline
         rb = np.asarray(gf.residual_batch(jnp.asarray(xs[folds:]), qj, yj, cj, jnp.ones((npad, m)), model=model))[0][valid]
-        comp_sigma = np.array([np.sqrt(np.mean(rb[:, :3] ** 2))] * 3 + [np.sqrt(np.mean(rb[:, 3:] ** 2))] * 3)
+        comp_sigma = np.where(pos_comp, np.sqrt(np.mean(rb[:, pos_comp] ** 2)), np.sqrt(np.mean(rb[:, ~pos_comp] ** 2)))
         comp_sigma = np.maximum(comp_sigma, 1e-9)
         w_all = jnp.asarray(valid[:, None] / comp_sigma[None, :])
     solve_s = time.perf_counter() - t_solve

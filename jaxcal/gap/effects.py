@@ -290,9 +290,9 @@ def read(model: GapModel, x, q, cov):
         v2 = v * (1.0 + scale) + bias[:3] + bias[3] * v / jnp.sqrt(jnp.sum(v**2) + 1e-12)
         return v2 + t * (drift[:3] + jnp.cross(drift[3:], v))
 
-    if device.kind == "position":
+    if device.marker_reading == "point":
         return on_position(y)
-    if device.kind == "pose":
+    if device.marker_reading == "frame":
         Rn = exp_so3(t * drift[3:]) @ y[:3, :3]
         top = jnp.concatenate([Rn, on_position(y[:3, 3])[:, None]], axis=1)
         return jnp.concatenate([top, y[3:]], axis=0)

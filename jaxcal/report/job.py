@@ -144,7 +144,7 @@ def plot_error_map(job: JobResult, path):
     position error before and after (each panel with its own colour scale: after calibration the
     error is often 100x smaller, and its pattern over the workspace is what is left to explain)."""
     data = [d for d in (job.train, job.test) if d is not None]
-    pts = np.concatenate([d.y[:, :3, 3] if d.device.kind == "pose" else d.y for d in data]) * 1e3
+    pts = np.concatenate([d.device.points(d.y)[:, 0] for d in data]) * 1e3
     before = np.concatenate([_errors(job.nominal, d)[0] for d in data])
     after = np.concatenate([_errors(job.fit, d)[0] for d in data])
     heldout = np.concatenate([np.full(len(d), i == 1) for i, d in enumerate(data)])
