@@ -13,6 +13,7 @@ import os
 import sys
 import time
 
+from jaxcal.fit.core import SOLVERS
 from jaxcal.fit.csvfile import prismatic_joints
 
 EXIT_BAD_INPUT = 2
@@ -138,7 +139,19 @@ def _calibrate(args) -> int:
     if verdict:
         print(verdict)
     print(f"report: {os.path.join(out, 'report.md')}; calibrated robot: {os.path.join(out, robot_file)}")
-    return 0
+    return health_exit_code(res.summary["health"], args.accept_warnings)
+
+
+def health_exit_code(health: dict, accept_warnings: bool) -> int:
+    """0 when the result is healthy (or its warnings are accepted), 1 when it carries warnings (docs/cli.md)."""
+    if health["ok"]:
+        return 0
+    if accept_warnings:
+        print(f"{len(health['warnings'])} health warning(s) accepted (--accept-warnings)")
+        return 0
+    print(f"exit 1: {len(health['warnings'])} health warning(s) (see the first lines above and of report.md); "
+          "--accept-warnings to exit 0 anyway", file=sys.stderr)
+    return 1
 
 
 def expand_free(patterns, robot):
@@ -358,13 +371,15 @@ def build_parser() -> argparse.ArgumentParser:
     _data_args(c)
     c.add_argument("--holdout", type=float, help="fraction of samples held out of the fit (default 0.25)")
     c.add_argument("--seed", type=int, help="seed of the held-out split (default 0)")
-    c.add_argument("--solver", choices=("lm", "lm_normal", "gn", "gn_normal", "dogleg", "bfgs"))
+    c.add_argument("--solver", choices=tuple(SOLVERS))
     c.add_argument("--free", nargs="+", help="robot parameters to estimate, names or patterns such as '*.offset' "
                    "(default: all free; the base set of them is identified)")
     c.add_argument("--known", nargs="+", help="device parameters (or prefixes dev, tool) taken as known")
     c.add_argument("--sigma-position", dest="sigma_position", type=float, help="position noise in m (residual weight)")
     c.add_argument("--sigma-orientation", dest="sigma_orientation", type=float, help="orientation noise in rad")
-    c.add_argument("--max-steps", dest="max_steps", type=int)
+    c.add_argument("--max-steps", dest="max_steps", type=int, help="solver step limit (default 200)")
+    c.add_argument("--accept-warnings", dest="accept_warnings", action="store_true",
+                   help="exit 0 even when the result carries health warnings (default: exit 1)")
     _quiet(c)
     c.set_defaults(func=_calibrate)
 

@@ -27,6 +27,8 @@ import tomllib
 
 import yaml
 
+from jaxcal.fit.core import SOLVERS
+
 
 class ConfigError(ValueError):
     """A job file that cannot be used; the message names the file and the key."""
@@ -44,7 +46,6 @@ def _string_list(v):
     return isinstance(v, list) and all(_string(x) for x in v)
 
 
-SOLVERS = ("lm", "lm_normal", "gn", "gn_normal", "dogleg", "bfgs")
 # key -> (check, description of what is expected)
 SCHEMA = {
     "robot": (_string, "a built-in robot name or a path"),

@@ -6,7 +6,7 @@ while loops and never waits on the others), and concatenates the results in orde
 the slices are dispatched asynchronously and run at the same time; on host CPU devices
 (`XLA_FLAGS=--xla_force_host_platform_device_count=N`) they run one after the other, because
 concurrent while-loop programs, and a jit over a NamedSharding of a vmapped while loop,
-deadlocked on two host devices (shared JAX_NOTES).
+deadlocked on two host devices (measured on the 2-core CI machine; docs/scale-out.md).
 """
 
 from __future__ import annotations

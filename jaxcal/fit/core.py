@@ -46,7 +46,7 @@ from jaxcal.measure.devices import Device
 # The one name -> solver map (CLI, job files, `identify(solver=...)`); an optimistix solver object works too.
 SOLVERS = {
     "lm": lambda rtol, atol: optx.LevenbergMarquardt(rtol=rtol, atol=atol),
-    # normal equations by Cholesky: faster for tall Jacobians, less robust with noise (shared JAX_NOTES 4)
+    # normal equations by Cholesky: ~1.7x faster than QR for tall Jacobians, less robust with noise (docs/identification.md)
     "lm_normal": lambda rtol, atol: optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky())),
     "gn": lambda rtol, atol: optx.GaussNewton(rtol=rtol, atol=atol),
     "gn_normal": lambda rtol, atol: optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=lx.Normal(lx.Cholesky())),

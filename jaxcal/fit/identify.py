@@ -21,6 +21,7 @@ import numpy as np
 
 from jaxcal.fit import core
 from jaxcal.fit.data import Dataset
+from jaxcal.fit.health import Health, assess
 from jaxcal.forward import forward
 from jaxcal.kin.model import Robot
 from jaxcal.measure.devices import Device
@@ -98,6 +99,7 @@ class FitResult:
     sigma: float | None = None  # residual standard deviation (weighted units) at the solution
     covariance: np.ndarray | None = None  # linearised covariance of the estimated parameters (seed 004 eq 3.31-3.32)
     info: dict = dataclasses.field(default_factory=dict)
+    health: Health | None = None  # convergence, residual vs stated noise, outliers, limits, rank, closure (`fit.health`)
 
     @property
     def std_errors(self) -> dict:
@@ -157,7 +159,7 @@ class FitResult:
         if self.orientation_rms_after is not None and self.rms_after == self.rms_after:
             o = f"; orientation {self.orientation_rms_before:.4g} -> {self.orientation_rms_after:.4g} mrad"
         unit = self.device.error_unit
-        lines = [
+        lines = ([] if self.health is None else self.health.lines()) + [
             f"identified {len(self.estimated)} parameters of {self.robot.name} from "
             f"{self.info.get('n_samples', '?')} {self.device.kind} samples",
             f"RMS error {self.rms_before:.4g} -> {self.rms_after:.4g} {unit} (nominal, frames fitted -> calibrated){o}",
@@ -218,6 +220,7 @@ def identify(
     history: bool = False,
     sample_weights=None,
     base_tol: float | None = None,
+    outliers: str = "flag",
 ) -> FitResult:
     """Identify robot and device parameters from a dataset, through the calibration core (`jaxcal.fit.core`).
 
@@ -235,7 +238,15 @@ def identify(
     sample_weights: optional (N,) extra weight per sample (0 leaves a sample out exactly).
     base_tol: QR pivot threshold of the base set relative to the largest (default: seed 001's n eps, 1e-10 for
     closed loops).
+    outliers: "flag" (default: samples failing the robust test are listed in `health` and warned about) or
+    "exclude" (they are also left out, weight 0, and the fit is repeated once without them).
+
+    Every result carries `health` (`jaxcal.fit.health.Health`): convergence, the residual against the stated
+    sigmas, outliers, joint readings outside the limits, rank and conditioning, unclosed samples, and, when the
+    residual is far above the stated noise, the joint columns that look swapped or sign-flipped.
     """
+    if outliers not in ("flag", "exclude"):
+        raise ValueError(f"outliers must be 'flag' or 'exclude', got {outliers!r}")
     t_start = time.perf_counter()
     device = data.device
     nr = robot.n_params
@@ -251,6 +262,7 @@ def identify(
     if sw.shape != (len(data),) or not np.all(np.isfinite(sw)) or np.any(sw < 0):
         raise ValueError(f"sample_weights must be {len(data)} finite non-negative numbers")
     keep = np.flatnonzero(closes)
+    full_data = data
     data = data.subset(keep) if unclosed else data
     free_mask = np.concatenate([_select(free, robot.names, robot.free_mask), _device_free(device, known)])
     problem = core.make_problem(robot, device, data.q, data.y, weights=residual_weights(device, sigma_position, sigma_orientation),
@@ -258,6 +270,17 @@ def identify(
                                 sample_weights=sw[keep] if sample_weights is not None else None)
     settings = core.Settings(solver, max_steps, rtol, atol)
     cal = core.calibrate(problem, settings, base=base, bias=bias, multistart=multistart, seed=seed, base_tol=base_tol)
+    health = assess(cal, unclosed_start=unclosed, sample_index=keep, settings=settings)
+    if outliers == "exclude" and health.outliers:
+        sw = sw.copy()
+        sw[list(health.outliers)] = 0.0
+        kw = dict(free=free, known=known, a0=a0, device_params=device_params, solver=solver, base=base, bias=bias,
+                  bounds=bounds, multistart=multistart, seed=seed, sigma_position=sigma_position,
+                  sigma_orientation=sigma_orientation, max_steps=max_steps, rtol=rtol, atol=atol, history=history,
+                  base_tol=base_tol)
+        refit = identify(robot, full_data, sample_weights=sw, outliers="flag", **kw)
+        refit.info["excluded_outliers"] = health.outliers
+        return refit
     hist = _history(problem, cal.x_frames, problem.args(cal.estimated, 0.0, cal.x_frames), settings) if history else None
 
     nominal_p, nominal_o = _rms_mm(problem, problem.a_ref)
@@ -281,7 +304,7 @@ def identify(
         estimated=to_names(est_idx), undetermined=to_names(cal.undetermined), no_effect=to_names(cal.no_effect),
         regrouped=to_names(cal.regrouped), weak_directions=_weak_directions(Je, to_names(est_idx)),
         timings={"compile_s": cal.compile_s, "run_s": cal.run_s, "total_s": time.perf_counter() - t_start},
-        history=hist, sigma=sigma_hat, covariance=covariance,
+        history=hist, sigma=sigma_hat, covariance=covariance, health=health,
         info={"n_samples": len(data), "unclosed_samples": unclosed, "estimated_index": est_idx,
               "solver": solver if isinstance(solver, str) else type(solver).__name__,
               "sigma_position": sigma_position, "sigma_orientation": sigma_orientation,

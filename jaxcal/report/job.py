@@ -109,6 +109,7 @@ def run_job(robot, data, holdout: float = 0.25, seed: int = 0, history: bool = T
                                          "after": None if v[1][0] is None else v[1][0].tolist()} for split, v in errs.items()},
     }
     summary["heldout_verdict"] = heldout_verdict(summary)
+    summary["health"] = job_health(fit, summary)
     return JobResult(fit, nominal, train, test, summary)
 
 
@@ -179,6 +180,17 @@ def _display(row):
     return row["change"] * k, None if row["std_error"] is None else row["std_error"] * k, unit
 
 
+def job_health(fit, summary) -> dict:
+    """The fit's health record plus the held-out check: a calibrated model no better than the nominal one on
+    held-out samples is a warning too."""
+    health = fit.health.to_dict()
+    h = summary["rms"].get("heldout", {}).get("position_mm")
+    if h and h["before"] is not None and h["after"] >= h["before"]:
+        health["warnings"] = list(health["warnings"]) + [summary["heldout_verdict"]]
+        health["ok"] = False
+    return health
+
+
 def heldout_verdict(summary) -> str | None:
     """One sentence on whether the calibration generalises to the held-out samples."""
     h = summary["rms"].get("heldout", {}).get("position_mm")
@@ -195,7 +207,11 @@ def heldout_verdict(summary) -> str | None:
 def job_markdown(summary, images: dict, robot_file: str | None) -> str:
     r = summary["rms"]
     s = summary["samples"]
-    lines = [f"# Calibration report: {summary['robot']}", "",
+    health = summary["health"]
+    status = ("**Health: ok.**" if health["ok"] else
+              f"**Health: {len(health['warnings'])} warning(s); do not use this calibration before reading them.**")
+    warnings = [f"- {w}" for w in health["warnings"]] + ([""] if health["warnings"] else [])
+    lines = [f"# Calibration report: {summary['robot']}", "", status, ""] + warnings + [
              f"Data: `{summary['data']}` ({s['total']} samples, {summary['device']} device; units in file "
              f"{summary['units_in_file']}). Training {s['train']}, held-out {s['heldout']} (random split, seed {summary['seed']}).",
              "", "## Errors before and after", "",
