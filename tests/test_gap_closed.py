@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import central_fd, rel_err
 
 import jaxcal as jc
 from jaxcal.closure import delta as dl
@@ -73,15 +74,12 @@ def test_platform_load_matches_the_nominal_direct_solution(delta):
     points to 4 digits (P off by <= 4e-5 m), so the two agree to ~1e-4 relative, not to rounding."""
     q = delta_workspace(N_SMALL, seed=5)
     tau = np.asarray(jax.vmap(functools.partial(platform_load, delta))(jnp.asarray(q)))
-    h = 1e-6
-    fd = np.zeros_like(q)
-    for j in range(3):
-        e = np.zeros(3)
-        e[j] = h
-        Pp = np.asarray(jax.vmap(dl.direct)(jnp.asarray(q + e))[0])
-        Pm = np.asarray(jax.vmap(dl.direct)(jnp.asarray(q - e))[0])
-        fd[:, j] = -PLATFORM_MASS * (Pp[:, 2] - Pm[:, 2]) / (2 * h)  # g_hat = -z
-    rel = np.linalg.norm(tau - fd) / np.linalg.norm(fd)
+
+    def load(e):  # m g_hat . P with g_hat = -z, every sample's actuators moved by e
+        return -PLATFORM_MASS * np.asarray(jax.vmap(dl.direct)(jnp.asarray(q + e))[0])[:, 2]
+
+    fd = central_fd(load, np.zeros(3), h=1e-6)
+    rel = rel_err(tau, fd)
     assert rel < 1e-3, rel
     assert np.all(np.abs(fd) > 0.05)  # a load worth modelling on every actuator
 
@@ -108,8 +106,6 @@ def test_effect_gradients_through_the_closure_match_central_differences(delta, m
     """jacfwd of the weighted residuals (closure inside, IFT derivatives) against central differences,
     on every effect parameter and a few geometry / device entries. Measured relative error 2e-10 overall,
     <= 1.2e-9 per column; bounds 1e-6 and 1e-5."""
-    from conftest import central_fd, rel_err
-
     n = N_SMALL
     q = jnp.asarray(delta_workspace(n, seed=8))
     C, _ = covariate_matrix(model, _covariates(n), n)

@@ -1,0 +1,101 @@
+"""Every built-in robot with every device (issue 14): gradients of the weighted residual, the
+simulate -> identify round trip on held-out samples, and a small Monte Carlo.
+
+Each test uses a device frame rotated by ~1.1 rad and placed 1.6 m from the robot base (the
+theodolite 2.9 m), readings through the closure for the closed loops, and float64.
+"""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from conftest import central_fd, rel_err
+from helpers import cells, configurations, covering, device, device_frame, robot, robot_device_grid
+
+import jaxcal as jc
+from jaxcal.fit.identify import residual_weights, residuals
+
+NOISE = 1e-5  # simulated noise: m for positions and distances, rad for rotations and sight angles
+NOISE_LEVELS = {"position": NOISE, "orientation": NOISE}
+
+# Default-run cells: the gradient check touches every device and every robot but the slow ones; the
+# round trip and the Monte Carlo (a solver compile per cell) run one open chain by default.
+GRADIENT_FAST = covering([("mrr1", "position"), ("stanford", "pose"), ("ur10", "orientation"), ("tiago_arm", "three_point"),
+                          ("talos_left_arm", "theodolite"), ("fourbar2d", "laser_range"), ("fourbar3d", "multi_position")])
+ROUND_TRIP_FAST = [("mrr1", "position")]
+MONTE_CARLO_FAST = [("mrr1", "position")]
+
+MC_NOISE_DRIFT = ("monte_carlo's noise generator (uncertainty._noisy_readings) has no theodolite / laser_range "
+                  "branch: it applies a rotation to the (N, 2) / (N, 1) readings and fails")
+MONTE_CARLO_XFAIL = {cell: MC_NOISE_DRIFT for cell in cells() if cell[1] in ("theodolite", "laser_range")}
+ROUND_TRIP_XFAIL: dict = {}  # none among the cells run so far (mrr1 x all devices, stanford-pose, ur10-orientation)
+DELTA_UNCLOSED = ("the Delta closes only at the nominal value of some fixed parameters (j22.a1 = pi/2 among them): 1e-6 off it "
+                  "every sample is flagged unclosed and forward adds its +1000 m sentinel to the tool position, so the central "
+                  "differences of those columns see the sentinel (a distance or sight angle does not cancel it) while jacfwd "
+                  "gives the closed-loop derivative")
+GRADIENT_XFAIL = {("delta", "laser_range"): DELTA_UNCLOSED, ("delta", "theodolite"): DELTA_UNCLOSED}
+
+
+def _full_point(name, kind):
+    """Robot parameters with 1 mm / 1 mrad errors, then the rotated, translated device frame."""
+    return np.concatenate([np.asarray(jc.perturb(robot(name), 1e-3, seed=2)), device_frame(kind)])
+
+
+@robot_device_grid(fast=GRADIENT_FAST, xfail=GRADIENT_XFAIL)
+def test_residual_gradient_matches_central_differences(robot_name, device_kind):
+    """jacfwd of the stacked weighted residual w.r.t. all robot then device parameters vs central
+    differences (h = 1e-6): relative error < 1e-6 (measured 1e-10 on open chains and four-bars,
+    5e-8 on the Delta, scaling as 1/h: round-off of its closure solve)."""
+    rb, dev = robot(robot_name), device(device_kind)
+    q = jnp.asarray(configurations(robot_name, 4, seed=1))
+    x0 = _full_point(robot_name, device_kind)
+    y = jax.vmap(dev.read, (0, None))(jc.forward(rb, rb.nominal, q), jnp.asarray(device_frame(device_kind)))
+    w = residual_weights(dev)
+    f = jax.jit(lambda x: residuals(rb, dev, x, q, y, w).reshape(-1))
+    J = np.asarray(jax.jit(jax.jacfwd(f))(jnp.asarray(x0)))
+    err = rel_err(J, central_fd(lambda x: f(jnp.asarray(x)), x0))
+    assert np.all(np.isfinite(J)) and err < 1e-6, f"{robot_name}/{device_kind}: relative error {err:.2e}"
+
+
+def _samples(rb, dev):
+    """Training samples: three residual components per estimable parameter, at least 30."""
+    m = {"pose": 6, "orientation": 3}.get(dev.kind, int(np.prod(dev.reading_shape)))
+    return max(30, math.ceil(3 * (int(rb.free_mask.sum()) + dev.n_params) / m))
+
+
+def _held_out_rms(rb, dev, a_full, data):
+    """RMS of the per-sample error (position, else orientation) of parameters a_full on data."""
+    r = residuals(rb, dev, jnp.asarray(a_full), jnp.asarray(data.q), jnp.asarray(data.y), residual_weights(dev, 1.0, 1.0))
+    pe, oe = dev.split_errors(r)
+    return float(np.sqrt(np.mean(np.asarray(pe if pe is not None else oe) ** 2)))
+
+
+@robot_device_grid(fast=ROUND_TRIP_FAST, xfail=ROUND_TRIP_XFAIL)
+def test_round_trip_reaches_the_noise_level(robot_name, device_kind):
+    """simulate -> identify from the nominal model: on 30 held-out samples the calibrated model's RMS
+    error is < 2x that of the true model (the drawn noise itself). With n m >= 3 p residuals for p
+    parameters the expected ratio is sqrt(1 + p / (n m)) <= 1.15; 2x leaves room for the spread of a
+    30-sample RMS (~10 %)."""
+    rb, dev = robot(robot_name), device(device_kind)
+    x_true = _full_point(robot_name, device_kind)
+    a_true, d_true = x_true[:rb.n_params], x_true[rb.n_params:]
+    sim = lambda n, seed: jc.simulate(rb, a_true, configurations(robot_name, n, seed=seed), dev, noise=NOISE_LEVELS,  # noqa: E731
+                                      device_params=d_true, seed=seed)
+    train, test = sim(_samples(rb, dev), 5), sim(30, 6)
+    fit = jc.identify(rb, train, sigma_position=NOISE, sigma_orientation=NOISE)
+    rms, noise = _held_out_rms(rb, dev, fit.a_full, test), _held_out_rms(rb, dev, x_true, test)
+    assert fit.converged, f"{robot_name}/{device_kind}: identify did not converge ({fit.iterations} iterations)"
+    assert rms < 2 * noise, f"{robot_name}/{device_kind}: held-out RMS {rms:.3e} vs noise {noise:.3e}"
+
+
+@robot_device_grid(fast=MONTE_CARLO_FAST, xfail=MONTE_CARLO_XFAIL)
+def test_monte_carlo_runs_and_is_finite(robot_name, device_kind):
+    """Four noisy identifications around the true device frame: every estimate is finite."""
+    rb, dev = robot(robot_name), device(device_kind)
+    x_true = _full_point(robot_name, device_kind)
+    registered = dev.with_values(**dict(zip(dev.names, x_true[rb.n_params:])))
+    q = configurations(robot_name, _samples(rb, dev), seed=5)
+    mc = jc.uncertainty.monte_carlo(rb, x_true[:rb.n_params], q, device=registered, noise=NOISE_LEVELS, runs=4, chunk=4,
+                                    devices=[], sigma_position=NOISE, sigma_orientation=NOISE)
+    assert mc.estimates.shape == (4, len(mc.names)) and np.all(np.isfinite(mc.estimates))
