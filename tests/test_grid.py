@@ -26,9 +26,7 @@ GRADIENT_FAST = covering([("mrr1", "position"), ("stanford", "pose"), ("ur10", "
 ROUND_TRIP_FAST = [("mrr1", "position")]
 MONTE_CARLO_FAST = [("mrr1", "position")]
 
-MC_NOISE_DRIFT = ("monte_carlo's noise generator (uncertainty._noisy_readings) has no theodolite / laser_range "
-                  "branch: it applies a rotation to the (N, 2) / (N, 1) readings and fails")
-MONTE_CARLO_XFAIL = {cell: MC_NOISE_DRIFT for cell in cells() if cell[1] in ("theodolite", "laser_range")}
+MONTE_CARLO_XFAIL: dict = {}  # theodolite / laser_range crashed until Monte Carlo used the devices' own noise model
 ROUND_TRIP_XFAIL: dict = {}  # none among the cells run so far (mrr1 x all devices, stanford-pose, ur10-orientation)
 DELTA_UNCLOSED = ("the Delta closes only at the nominal value of some fixed parameters (j22.a1 = pi/2 among them): 1e-6 off it "
                   "every sample is flagged unclosed and forward adds its +1000 m sentinel to the tool position, so the central "
