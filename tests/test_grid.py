@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from conftest import central_fd, rel_err
-from helpers import cells, configurations, covering, device, device_frame, robot, robot_device_grid
+from helpers import configurations, covering, device, device_frame, robot, robot_device_grid
 
 import jaxcal as jc
 from jaxcal.fit.identify import residual_weights, residuals
