@@ -248,7 +248,7 @@ def _diagnose(args) -> int:
                                    length_unit=args.length_unit, angle_unit=args.angle_unit, prismatic=prismatic_joints(robot))
         check_not_input(os.path.join(args.out, "diagnosis.json"), [args.robot, args.data])
         with _progress(not args.quiet) as prog, _stage(prog, f"diagnosing the sim-to-real gap of {robot.name}"):
-            d = jc.gap.diagnose(robot, data)
+            d = jc.gap.diagnose(robot, data, folds=args.folds, seed=args.seed, max_steps=args.max_steps)
             payload = d.to_dict()
     except _input_errors() as exc:
         return _fail(exc)
@@ -257,6 +257,33 @@ def _diagnose(args) -> int:
     d.plot(args.out)
     write_json_atomic(os.path.join(args.out, "diagnosis.json"), payload)
     return 0
+
+
+# -- cv -----------------------------------------------------------------------------------------------------
+def _cv(args) -> int:
+    import jaxcal as jc
+    from jaxcal.fit.cv import cross_validate
+    from jaxcal.io_atomic import check_not_input, write_json_atomic
+
+    try:
+        robot = load_robot_arg(args.robot, args.base, args.tip)
+        data = jc.Dataset.from_csv(args.data, joints=robot.joint_names, device=args.device, marker=args.marker,
+                                   length_unit=args.length_unit, angle_unit=args.angle_unit, prismatic=prismatic_joints(robot))
+        if args.json:
+            check_not_input(args.json, [args.robot, args.data])
+        with _progress(not args.quiet) as prog, _stage(prog, f"{args.folds}-fold cross-validation of {robot.name}"):
+            res = cross_validate(robot, data, folds=args.folds, seed=args.seed, sigma_position=args.sigma_position,
+                                 sigma_orientation=args.sigma_orientation, max_steps=args.max_steps)
+    except _input_errors() + (ValueError,) as exc:
+        return _fail(exc)
+    print(res.report())
+    for row in res.per_fold:
+        print(f"  fold {row['fold'] + 1}: {row['samples']} held-out samples, {row['heldout_before']:.4g} -> "
+              f"{row['heldout_after']:.4g}" + (f"; {len(row['warnings'])} warning(s)" if row["warnings"] else ""))
+    if args.json:
+        write_json_atomic(args.json, res.to_dict())
+    ok = res.healthy_folds == res.folds
+    return health_exit_code({"ok": ok, "warnings": [w for r in res.per_fold for w in r["warnings"]]}, args.accept_warnings)
 
 
 # -- bench ------------------------------------------------------------------------------------------------
@@ -415,8 +442,26 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("data", help="measurement CSV")
     d.add_argument("--out", default="diagnosis-output", help="output folder (default diagnosis-output)")
     _data_args(d)
+    d.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
+    d.add_argument("--seed", type=int, default=0, help="seed of the fold split (default 0)")
+    d.add_argument("--max-steps", dest="max_steps", type=int, default=200, help="solver step limit (default 200)")
     _quiet(d)
     d.set_defaults(func=_diagnose)
+
+    v = sub.add_parser("cv", help="k-fold cross-validation of the calibration of a robot on a measurement CSV")
+    _robot_args(v)
+    v.add_argument("data", help="measurement CSV")
+    _data_args(v)
+    v.add_argument("--folds", type=int, default=5, help="folds (default 5; repeated poses stay in one fold)")
+    v.add_argument("--seed", type=int, default=0, help="seed of the fold split (default 0)")
+    v.add_argument("--sigma-position", dest="sigma_position", type=float, default=1e-3, help="position noise in m")
+    v.add_argument("--sigma-orientation", dest="sigma_orientation", type=float, default=1e-3, help="orientation noise in rad")
+    v.add_argument("--max-steps", dest="max_steps", type=int, default=200, help="solver step limit (default 200)")
+    v.add_argument("--json", help="write the per-fold results as JSON here")
+    v.add_argument("--accept-warnings", dest="accept_warnings", action="store_true",
+                   help="exit 0 even when a fold's fit carries health warnings (default: exit 1)")
+    _quiet(v)
+    v.set_defaults(func=_cv)
 
     b = sub.add_parser("bench", help="quick built-in timing, or run one of the repository's benchmarks/ scripts")
     b.add_argument("--script", help="benchmark script in benchmarks/ (fk, identify, ga, ...); arguments after --")

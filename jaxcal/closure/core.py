@@ -110,7 +110,7 @@ def checked_closure(robot: Robot) -> Closure:
     return c
 
 
-@functools.cache
+@functools.lru_cache(maxsize=64)  # robots hash by identity: bounded
 def open_tree(robot: Robot) -> Robot:
     """The tree with every free joint turned into an input after the actuated ones (closure removed).
 

@@ -127,7 +127,7 @@ class Level2Result:
     timings: dict = dataclasses.field(default_factory=dict)
 
 
-@functools.cache
+@functools.lru_cache(maxsize=16)
 def _over_sets(fn, in_axes):
     """jit(vmap) of a jitted GA function's body over a leading configuration-set axis (in_axes as in vmap)."""
     return core.jit_cpu_options(jax.vmap(fn.__wrapped__, in_axes))

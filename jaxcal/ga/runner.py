@@ -35,7 +35,7 @@ class GAResult:
     timings: dict
 
 
-@functools.cache
+@functools.lru_cache(maxsize=16)  # robots hash by identity: bounded
 def engine(robot: Robot, device, free_idx: tuple, fitness_kind: str, w1: float, w2: float,
            opts: core.GAOptions, chunk: int, seed_spread: float):
     """Compiled (init_seeded, init_random, chunk) functions, cached per static setting. The data
