@@ -26,8 +26,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxcal as jc
+from jaxcal.fit import core
 from jaxcal.fit import uncertainty as un
-from jaxcal.fit.identify import _executable, _solve, residual_weights
+from jaxcal.fit.identify import residual_weights
 
 OUT = os.path.join("bench-output", "montecarlo")
 CASES = {  # robot -> (device, known device parameters, n configurations, noise sd)
@@ -57,12 +58,10 @@ def speed(name, runs, solver=None):
     a0 = jnp.asarray(ref.a_full)
     n_loop = min(runs, 32)
     datas = [jc.simulate(rb, a, q, device, noise=_noise(device, s), seed=100 + i) for i in range(n_loop)]
-    args = dict(a_ref=a0, mask=jnp.asarray(mask), q=jnp.asarray(q), y=jnp.asarray(datas[0].y),
-                w=residual_weights(dev, s, s), mu=jnp.float64(0.0),
-                x_scale=jnp.asarray([1.0 if u in ("gain", "scale") else 0.01 for u in tuple(rb.units) + tuple(dev.units)]),
-                lb=jnp.full(len(mask), -jnp.inf), ub=jnp.full(len(mask), jnp.inf))
-    cfg = dict(robot=rb, device=dev, solver=mc.timings["solver"], max_steps=50, rtol=1e-8, atol=1e-10)
-    exe, _ = _executable(_solve, cfg, a0, args)
+    problem = core.make_problem(rb, dev, q, datas[0].y, weights=residual_weights(dev, s, s), free=mask > 0, a_ref=np.asarray(a0))
+    args = dict(problem.args(idx, 0.0, np.asarray(a0)), w=jnp.asarray(problem.w))
+    settings = core.Settings(mc.timings["solver"], 50, 1e-8, 1e-10)
+    exe, _ = core.compiled_solver(a0, args, rb, dev, settings)
     t = time.perf_counter()
     for d in datas:
         jax.block_until_ready(exe(a0, {**args, "y": jnp.asarray(d.y)}))

@@ -53,9 +53,11 @@ SOLVERS = {
     "dogleg": lambda rtol, atol: optx.Dogleg(rtol=rtol, atol=atol),
     "bfgs": lambda rtol, atol: optx.BFGS(rtol=rtol, atol=atol),
 }
-# Closed loops: geometric dependencies are left at ~1e-13 relative (the Delta's Table 4.6 rounds its
-# values to 4 digits), so their base set drops QR pivots below this share of the largest.
-CLOSED_BASE_TOL = 1e-10
+# Base set: QR pivots below this share of the largest are dependent. Seed 001's eq 34 (n eps) keeps columns
+# whose dependency is exact only up to round-off: the Delta's Table 4.6 (values rounded to 4 digits) leaves
+# ~1e-13, and MRR-1's six-parameter modules left pivots of 1e-14 that made the estimate's condition number
+# 1e14-1e15 (parameters whose values are arbitrary). One rule for every robot.
+BASE_TOL = 1e-10
 # Readings whose best similarity registration onto the model needs one of these scales are in another unit.
 UNIT_SCALES = {"mm": 1e-3, "cm": 1e-2, "inch": 0.0254}
 
@@ -372,13 +374,13 @@ class Calibration:
 
 def choose_estimated(problem: Problem, J, base: bool, base_tol: float | None):
     """(estimated, undetermined, no_effect, regrouped) index arrays: the base set (seed 001 App. III) of the free
-    columns of J under the priorities, or every free column when base is False."""
+    columns of J under the priorities (pivot threshold base_tol, default BASE_TOL, relative to the largest),
+    or every free column when base is False."""
     cand = np.flatnonzero(problem.free)
     if not base:
         e = np.zeros(0, int)
         return cand, e, e, e
-    c = base_tol / np.finfo(float).eps if base_tol is not None else (
-        CLOSED_BASE_TOL / np.finfo(float).eps if problem.robot.closure is not None else None)
+    c = (BASE_TOL if base_tol is None else base_tol) / np.finfo(float).eps
     bs = base_set(J[:, cand], problem.priority[cand], c=c)
     return (np.sort(cand[bs.independent]), np.sort(cand[np.concatenate([bs.regrouped, bs.no_effect])]),
             cand[bs.no_effect], cand[bs.regrouped])

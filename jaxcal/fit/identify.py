@@ -236,8 +236,8 @@ def identify(
     multistart: number of extra random starts (vmapped), spread 1 cm / 0.01 rad around a0.
     sigma_position, sigma_orientation: residual weights 1/sigma (m, rad).
     sample_weights: optional (N,) extra weight per sample (0 leaves a sample out exactly).
-    base_tol: QR pivot threshold of the base set relative to the largest (default: seed 001's n eps, 1e-10 for
-    closed loops).
+    base_tol: QR pivot threshold of the base set relative to the largest (default `core.BASE_TOL` = 1e-10;
+    seed 001's eq 34 uses n eps, which keeps columns dependent up to round-off).
     outliers: "flag" (default: samples failing the robust test are listed in `health` and warned about) or
     "exclude" (they are also left out, weight 0, and the fit is repeated once without them).
 
