@@ -11,8 +11,8 @@ import jaxcal  # noqa: E402,F401  (float64)
 
 jax.config.update("jax_enable_x64", True)
 
-# Watchdog limits (s) of one test, set-up and tear-down included. 600 s was too short on the shared
-# 2-core machine at load ~12: tests/test_fourbar3d_mc.py's Monte Carlo fixture ran past it.
+# Watchdog limits (s) of one test, set-up and tear-down included. The slowest fast test took 282 s
+# at load 7-10 on the shared 2-core machine; 600 s was too short for test_fourbar3d_mc's fixture at load ~12.
 WATCHDOG_FAST_S = 900
 WATCHDOG_SLOW_S = 3600
 _watchdog_fd = None
