@@ -16,11 +16,16 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/jaxcal demo --out demo-output
 
-# Two workers (one per core, a file per worker so compiled functions are reused), no persistent
-# XLA cache (entries written by crashed or concurrent processes were read back as segfaults), and
-# one rerun of a test only when its worker process crashed (XLA 0.10 CPU compiles crashed
-# intermittently here; an ordinary failure is never rerun).
-PYTEST_RUN := JAXCAL_NO_CACHE=1 $(BIN)/python -m pytest -n 2 --dist loadfile --reruns 1 --only-rerun crashed
+# Two workers (one per core). worksteal hands each worker a contiguous half of the tests, so a
+# file's tests mostly share one process and its compiled functions; an idle worker takes work
+# from the other's tail. A test that crashes its worker (segfault, abort, or the watchdog of
+# tests/conftest.py, which dumps all stacks and exits the process past the test's limit) is
+# reported as "worker crashed", the worker is replaced (at most 4 times), and pytest-rerunfailures
+# puts the test back in the queue once: `--reruns 1` counts the crash, while `--only-rerun` and
+# `--rerun-except` only ever filter ordinary failures; `--rerun-except .` matches every one, so an
+# ordinary failure is never rerun. (--dist loadfile cannot put a crashed test back.) No
+# persistent XLA cache: it is opt-in (JAXCAL_CACHE) since jax writes its entries in place.
+PYTEST_RUN := $(BIN)/python -m pytest -n 2 --dist worksteal --max-worker-restart 4 --reruns 1 --rerun-except .
 
 test: $(STAMP)
 	$(PYTEST_RUN)

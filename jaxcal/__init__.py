@@ -7,13 +7,14 @@
 """
 
 from jaxcal import (
-           _setup,  # noqa: F401  (float64 + compilation cache before anything traces)
+           _setup,  # noqa: F401  (float64 before anything traces; compilation cache only on request)
            ga,  # noqa: E402  (genetic algorithm)
            gap,  # sim-to-real gap diagnosis
            measure,
            realdata,  # built-in real datasets (TALOS, UR10, TIAGo)
            robots,
 )
+from jaxcal._setup import enable_compilation_cache
 from jaxcal.fit import DataError, Dataset, FitResult, identify, perturb, random_configurations, simulate, uncertainty
 from jaxcal.fit.identifiable import identifiable
 from jaxcal.forward import forward
@@ -22,7 +23,6 @@ from jaxcal.measure import make_device
 from jaxcal.robots.io import load_robot, save_robot
 
 __version__ = "0.1.0"
-__all__ = ["DataError", "Dataset", "FitResult", "Pose", "Robot", "forward", "ga", "gap", "identifiable", "identify",
-           "make_device", "load_robot", "measure", "perturb", "random_configurations", "realdata", "robots", "save_robot",
-           "simulate",
-           "uncertainty"]
+__all__ = ["DataError", "Dataset", "FitResult", "Pose", "Robot", "enable_compilation_cache", "forward", "ga", "gap",
+           "identifiable", "identify", "make_device", "load_robot", "measure", "perturb", "random_configurations", "realdata",
+           "robots", "save_robot", "simulate", "uncertainty"]

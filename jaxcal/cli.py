@@ -13,6 +13,7 @@ import os
 import sys
 import time
 
+from jaxcal._setup import enable_compilation_cache
 from jaxcal.fit.core import SOLVERS
 from jaxcal.fit.csvfile import prismatic_joints
 
@@ -386,6 +387,8 @@ def _quiet(p):
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jaxcal", description="Differentiable robot calibration in JAX.")
+    p.add_argument("--cache", metavar="DIR", help="keep compiled XLA code in DIR across runs (off by default; "
+                   "jax writes entries in place, so do not share DIR between concurrent runs)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
 
     c = sub.add_parser("calibrate", help="identify a robot from a measurement CSV; write results, report, calibrated robot")
@@ -486,6 +489,8 @@ def main(argv=None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
+    if args.cache:
+        enable_compilation_cache(args.cache)
     return args.func(args)
 
 

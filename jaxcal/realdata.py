@@ -43,9 +43,8 @@ import numpy as np
 from jaxcal import robots
 from jaxcal.fit.data import DataError, Dataset
 from jaxcal.fit.identify import identify
+from jaxcal.robots.real_datasets import DATA_DIR, REAL_DATASETS
 from jaxcal.robots.urdf import compliance_inputs, rpy_matrix, with_gravity_compliance
-
-DATA_DIR = os.path.join(os.path.dirname(__file__), "robots", "data", "real")
 
 # FIGAROH 1.0.2 on the same files, 5-fold cross-validated position RMS (mm) of the per-sample 3-D
 # error, from data/real/README.md: frames only, full parameters, best variant.
@@ -56,18 +55,6 @@ FIGAROH = {
     "tiago": {"frames": 4.54, "full": 6.03, "best": 4.30, "best_variant": "three marker points"},
 }
 
-_SPECS = {
-    "talos": dict(robot="talos_left_arm", folder="talos", urdf="talos.urdf", csv="left_arm_mocap.csv", tip="gripper_left_base_link",
-                  joints=("torso_1_joint", "torso_2_joint") + tuple(f"arm_left_{i}_joint" for i in range(1, 8)),
-                  description="PAL TALOS humanoid, torso + left arm, motion-capture positions of one marker"),
-    "ur10": dict(robot="ur10", folder="ur10", urdf="ur10.urdf", csv="calibration_pose.csv", tip="wrist_3_link",
-                 joints=("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
-                         "wrist_3_joint"),
-                 description="Universal Robots UR10, full 6-D marker poses"),
-    "tiago": dict(robot="tiago_arm", folder="tiago", urdf="tiago.urdf", csv="qualisys_static_postures.csv", tip="wrist_ft_tool_link",
-                  joints=("torso_lift_joint",) + tuple(f"arm_{i}_joint" for i in range(1, 8)),
-                  description="PAL TIAGo torso + arm, Qualisys motion capture of a rigid three-point marker"),
-}
 # Orientation residual weight 1/sigma (rad), fixed a priori: UR10 1 mrad per mm as for a tracked marker
 # frame; TIAGo's orientation comes from a triad of ~0.1 m, so 1 mm of point noise is ~10 mrad.
 SIGMA_ORIENTATION = {"talos": 1e-3, "ur10": 1e-3, "tiago": 1e-2}
@@ -89,7 +76,7 @@ class RealData:
 
 
 def available() -> tuple[str, ...]:
-    return tuple(_SPECS)
+    return tuple(REAL_DATASETS)
 
 
 def read_columns(path: str, columns) -> np.ndarray:
@@ -140,9 +127,9 @@ def triad_frame(p1, p2, p3) -> np.ndarray:
 def load(name: str) -> RealData:
     """A built-in real dataset by name (see `available()`); its robot is the built-in of the same
     chain (`jc.robots.get("talos_left_arm" | "ur10" | "tiago_arm")`)."""
-    if name not in _SPECS:
+    if name not in REAL_DATASETS:
         raise KeyError(f"unknown real dataset {name!r}; built-ins: {', '.join(available())}")
-    spec = _SPECS[name]
+    spec = REAL_DATASETS[name]
     folder = os.path.join(DATA_DIR, spec["folder"])
     robot = robots.get(spec["robot"])  # cached: one robot object, so compiled solvers are reused
     path = os.path.join(folder, spec["csv"])
@@ -181,7 +168,7 @@ def with_markers(real: RealData) -> RealData:
 
 @functools.cache
 def _compliant_robot(name: str):
-    return with_gravity_compliance(robots.get(_SPECS[name]["robot"]))
+    return with_gravity_compliance(robots.get(REAL_DATASETS[name]["robot"]))
 
 
 def with_compliance(real: RealData) -> RealData:

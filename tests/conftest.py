@@ -1,3 +1,4 @@
+import faulthandler
 import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -6,9 +7,39 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-import jaxcal  # noqa: E402,F401  (float64 + compilation cache)
+import jaxcal  # noqa: E402,F401  (float64)
 
 jax.config.update("jax_enable_x64", True)
+
+# Watchdog limits (s) of one test, set-up and tear-down included. The slowest fast test took 282 s
+# at load 7-10 on the shared 2-core machine; 600 s was too short for test_fourbar3d_mc's fixture at load ~12.
+WATCHDOG_FAST_S = 900
+WATCHDOG_SLOW_S = 3600
+_watchdog_fd = None
+
+
+def pytest_configure(config):
+    """Keep a handle on the real stderr (output capture is suspended while configuring) for the dumps."""
+    global _watchdog_fd
+    _watchdog_fd = os.dup(2)
+
+
+def watchdog_limit(item) -> float:
+    marker = item.get_closest_marker("watchdog")
+    if marker:
+        return marker.args[0]
+    return WATCHDOG_SLOW_S if item.get_closest_marker("slow") else WATCHDOG_FAST_S
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item):
+    """Past its limit a test dumps every thread's stack and its process exits: under xdist the
+    worker is replaced and the test is rerun once (see the Makefile)."""
+    faulthandler.dump_traceback_later(watchdog_limit(item), exit=True, file=_watchdog_fd)
+    try:
+        return (yield)
+    finally:
+        faulthandler.cancel_dump_traceback_later()
 
 
 def central_fd(f, x, h=1e-6):

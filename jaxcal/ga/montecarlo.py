@@ -144,10 +144,10 @@ def run_sets(robot, datasets, seeds, runs, **ga_kw):
     payload = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *[s.payload for s in setups])
     keys = jnp.stack([jax.random.split(jax.random.PRNGKey(int(s)), runs) for s in seeds])
     t0 = time.perf_counter()
-    init = runner._compiled(_over_sets(st.init_random, (0, 0, None, None)), keys, payload, st.lb, st.ub)
+    init = runner.compiled_for_shapes(_over_sets(st.init_random, (0, 0, None, None)), keys, payload, st.lb, st.ub)
     state = init(keys, payload, st.lb, st.ub)
-    chunk = runner._compiled(_over_sets(st.chunk_fn, (0, 0, None, None)), state, payload, st.lb, st.ub)
-    best = runner._compiled(_over_sets(st.best_fn, 0), state)
+    chunk = runner.compiled_for_shapes(_over_sets(st.chunk_fn, (0, 0, None, None)), state, payload, st.lb, st.ub)
+    best = runner.compiled_for_shapes(_over_sets(st.best_fn, 0), state)
     jax.block_until_ready(state)
     t1 = time.perf_counter()
     for _ in range(st.opts.generations // st.chunk):

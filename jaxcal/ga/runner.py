@@ -63,7 +63,7 @@ def engine(robot: Robot, device, free_idx: tuple, fitness_kind: str, w1: float, 
 _COMPILED = {}
 
 
-def _compiled(fn, *args):
+def compiled_for_shapes(fn, *args):
     """AOT-compiled fn for these argument shapes (cached), so compile time is measured apart."""
     key = (id(fn), str(jax.tree_util.tree_map(lambda x: (jnp.shape(x), jnp.result_type(x)), args)))
     if key not in _COMPILED:
@@ -154,12 +154,12 @@ def run(robot: Robot, data: Dataset, *, seed=0, runs=1, progress=False, **kw):
 
     t0 = time.perf_counter()
     if st.start is None:
-        init = _compiled(st.init_random, keys, payload, lb, ub)
+        init = compiled_for_shapes(st.init_random, keys, payload, lb, ub)
         state = init(keys, payload, lb, ub)
     else:
-        init = _compiled(st.init_seeded, keys, payload, lb, ub, st.start)
+        init = compiled_for_shapes(st.init_seeded, keys, payload, lb, ub, st.start)
         state = init(keys, payload, lb, ub, st.start)
-    chunk_c = _compiled(st.chunk_fn, state, payload, lb, ub)
+    chunk_c = compiled_for_shapes(st.chunk_fn, state, payload, lb, ub)
     jax.block_until_ready(state)
     compile_s = time.perf_counter() - t0
 

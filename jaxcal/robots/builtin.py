@@ -8,6 +8,8 @@ import os
 import numpy as np
 
 from jaxcal.robots.io import load_robot
+from jaxcal.robots.real_datasets import DATA_DIR, REAL_DATASETS
+from jaxcal.robots.urdf import load_urdf
 
 _REGISTRY: dict = {}
 
@@ -102,10 +104,7 @@ def fourbar3d():
 
 # -- Real robots (issue 8): the URDF chains of the built-in real datasets (`jaxcal.realdata`) --
 def _real_robot(dataset: str):
-    from jaxcal.realdata import _SPECS, DATA_DIR
-    from jaxcal.robots.urdf import load_urdf
-
-    spec = _SPECS[dataset]
+    spec = REAL_DATASETS[dataset]
     return load_urdf(os.path.join(DATA_DIR, spec["folder"], spec["urdf"]), tip=spec["tip"], name=spec["robot"])
 
 

@@ -29,6 +29,8 @@ import yaml
 
 from jaxcal.kin.conventions import PRY_KINDS
 from jaxcal.robots.build import mcpc_robot, mdh_robot, pry_robot
+from jaxcal.robots.errors import RobotFileError
+from jaxcal.robots.urdf import load_urdf, save_urdf
 
 _COLUMNS = {
     "pry": ["x", "y", "z", "pitch", "roll", "yaw", "type"],
@@ -37,10 +39,6 @@ _COLUMNS = {
 }
 _ROWS_KEY = {"pry": "joints", "mdh": "frames", "mcpc": "rows"}
 _TYPE_LETTERS = {"R": "revolute", "P": "prismatic", "C": "cylindrical", "U": "universal", "S": "spherical", "F": "fixed"}
-
-
-class RobotFileError(ValueError):
-    """A robot file that cannot be read; the message names the file, row and field."""
 
 
 def _angle_scale(doc, path):
@@ -126,8 +124,6 @@ def robot_from_dict(doc: dict, path: str = "<dict>"):
 def load_robot(path: str, **kwargs):
     """Load a robot from YAML (seed table layouts) or URDF (`base=`, `tip=` link names)."""
     if str(path).lower().endswith(".urdf"):
-        from jaxcal.robots.urdf import load_urdf  # issue: URDF import
-
         return load_urdf(path, **kwargs)
     if not os.path.exists(path):
         raise RobotFileError(f"{path}: no such file")
@@ -178,8 +174,6 @@ def save_robot(robot, path: str, a=None) -> str:
     """Write the robot (with parameters a) as YAML atomically (temp file, then rename); a path ending
     in ".urdf" writes the calibrated URDF of a URDF-loaded robot (`jaxcal.robots.urdf.save_urdf`)."""
     if str(path).lower().endswith(".urdf"):
-        from jaxcal.robots.urdf import save_urdf
-
         return save_urdf(robot, path, a)
     if robot.bodies[0].convention not in _COLUMNS:
         raise RobotFileError(f"{path}: a robot of the {robot.bodies[0].convention!r} convention is saved as .urdf, not YAML")

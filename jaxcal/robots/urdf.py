@@ -30,7 +30,7 @@ import numpy as np
 
 from jaxcal.kin import conventions as cv
 from jaxcal.kin.model import Body, Robot
-from jaxcal.robots.io import RobotFileError
+from jaxcal.robots.errors import RobotFileError
 
 _TYPE = {"revolute": "revolute", "continuous": "revolute", "prismatic": "prismatic", "fixed": "fixed"}
 
