@@ -8,7 +8,9 @@ import ast
 import pathlib
 
 ROOT = pathlib.Path(__file__).resolve().parents[1] / "jaxcal"
-CHECKED = ("jaxcal.robots", "jaxcal.realdata", "jaxcal.ga", "jaxcal.report", "jaxcal.cli")
+CHECKED = ("jaxcal.robots", "jaxcal.realdata", "jaxcal.ga", "jaxcal.report", "jaxcal.cli", "jaxcal.kin", "jaxcal.closure",
+           "jaxcal.measure", "jaxcal.fit", "jaxcal.forward", "jaxcal.shard", "jaxcal.scale", "jaxcal.linalg", "jaxcal.config",
+           "jaxcal.demo", "jaxcal.io_atomic", "jaxcal._setup")
 
 
 def module_name(path: pathlib.Path) -> str:

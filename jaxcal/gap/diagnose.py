@@ -51,7 +51,7 @@ MAX_EFFECT_COLUMNS = 18  # effect columns the selected model may add (max_effect
 # Refit control (step 3). mu = 1: a departure of one typical size (1 cm, 10 mrad) from the baseline geometry
 # costs as much as one reading at the baseline RMS; well-measured directions (curvature >> 1) are not biased,
 # directions the training fold leaves nearly free are held at the baseline instead of running off.
-# Closed loops get no prior: their base set (pivot tolerance jaxcal.fit.core.BASE_TOL) is the conditioning control, and on the Delta the
+# Closed loops get no prior: their base set (pivot tolerance core.BASE_TOL) is the conditioning control, and on the Delta the
 # prior kept the geometry from moving with the effect (backlash refit 0.061 mm held out vs 0.039 mm linearised).
 PRIOR_MU = 1.0
 # Closed loops: the baseline LM stops after this many steps. Beyond ~40 it walked, on the Delta, along weakly
