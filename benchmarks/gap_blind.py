@@ -57,10 +57,10 @@ def configurations(robot, n, seed):
 
 def geometry_basis(robot, model, x, q, cov):
     """Orthonormal basis (N*3, r) of the position-reading changes the geometry and device frame can make,
-    linearised at x (base set with the diagnosis' tolerance for closed loops), and the effect Jacobian
+    linearised at x (base set with the calibration core's pivot tolerance), and the effect Jacobian
     columns (N*3, n_effect_params)."""
     from jaxcal.fit.base import base_set
-    from jaxcal.gap.diagnose import CLOSED_BASE_TOL
+    from jaxcal.fit.core import BASE_TOL
 
     n = len(q)
     C, _ = covariate_matrix(model, cov, n)
@@ -75,7 +75,7 @@ def geometry_basis(robot, model, x, q, cov):
     J = np.asarray(J[0])[: 3 * n]
     geo = np.flatnonzero(np.concatenate([robot.free_mask, model.device.free_mask]))
     prio = np.concatenate([robot.priority, model.device.priority])
-    G = geo[base_set(J[:, geo], prio[geo], c=CLOSED_BASE_TOL / np.finfo(float).eps).independent]
+    G = geo[base_set(J[:, geo], prio[geo], c=BASE_TOL / np.finfo(float).eps).independent]
     U, s, _ = np.linalg.svd(J[:, G], full_matrices=False)
     return U[:, s > 1e-10 * s[0]], J[:, model.n_geometry:]
 

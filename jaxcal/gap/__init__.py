@@ -5,7 +5,10 @@
 """
 
 from jaxcal.gap.diagnose import Candidate, Diagnosis, diagnose
-from jaxcal.gap.effects import EFFECTS, GapModel, gap_model
+from jaxcal.gap.effect import Effect, get_effect, register, registered_effects
+from jaxcal.gap.effects import EFFECTS
+from jaxcal.gap.model import GapModel, gap_model
 from jaxcal.gap.simulate import effect_vector, simulate_effect
 
-__all__ = ["EFFECTS", "Candidate", "Diagnosis", "GapModel", "diagnose", "effect_vector", "gap_model", "simulate_effect"]
+__all__ = ["EFFECTS", "Candidate", "Diagnosis", "Effect", "GapModel", "diagnose", "effect_vector", "gap_model", "get_effect",
+           "register", "registered_effects", "simulate_effect"]

@@ -23,41 +23,32 @@ thermal        p' = p0 + (1 + kappa * tau) (p - p0): every length of the mechani
                unchanged), so the tool point scales about the base origin p0 exactly
 device effects (device_scale, device_bias, drift) act on the reading as for open chains.
 
-Not in the closed-loop library: link_bending (its load model needs the internal forces of the
+The layout is `jaxcal.gap.model.gap_model`'s with the effects marked `closed_loop`; the hooks are the
+open chain's ("joint", "tool", "reading") plus "actuator_load" (compliance). Not in the closed-loop
+library: link_bending (its load model needs the internal forces of the
 loop). Effects the geometry or the device frame absorb exactly (a constant device offset; an
 encoder gain where the model has a joint gain) are reported as not separable by `diagnose`.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.gap import effects as fx
-from jaxcal.measure.devices import Device
+from jaxcal.closure import delta as dl
+from jaxcal.forward import forward
+from jaxcal.gap.effect import get_effect, registered_effects
+from jaxcal.gap.model import G_HAT, GapModel, joint_offsets, params_of, tool_transforms
 
-CLOSED_EFFECTS = tuple(e for e in fx.EFFECTS if e != "link_bending")
+# The built-in closed-loop library (the registry at import).
+CLOSED_EFFECTS = tuple(e for e in registered_effects() if get_effect(e).closed_loop)
 PLATFORM_MASS = 1.0  # kg at the tool point: the default mass model of the compliance effect
 
 
-@functools.lru_cache(maxsize=32)
-def closed_model(robot, device: Device) -> fx.GapModel:
-    """The effect layout of a closed-loop robot: the open-chain layout over the actuated joints
-    (robot.joint_names) without the link_bending parameters."""
-    full = fx._cached_model(robot, device)
-    keep = [i for i, e in enumerate(full.effect_of) if e in CLOSED_EFFECTS]
-    return dataclasses.replace(full, effect_names=tuple(full.effect_names[i] for i in keep),
-                               effect_of=tuple(full.effect_of[i] for i in keep),
-                               joint_of=tuple(full.joint_of[i] for i in keep))
-
-
 def _tool_point(robot, q):
-    from jaxcal.forward import forward
-
     return forward(robot, robot.nominal, q).p
 
 
@@ -65,31 +56,30 @@ def platform_load(robot, q):
     """Gravity load tau (n,) on each actuated joint, kg m: tau_j = m (d p_tool / d q_j) . g_hat on the
     nominal geometry (virtual work; the default one-mass model at the tool point)."""
     J = jax.jacfwd(functools.partial(_tool_point, robot))(jax.lax.stop_gradient(q))  # (3, n)
-    return PLATFORM_MASS * (jnp.asarray(fx.G_HAT) @ J)
+    return PLATFORM_MASS * (jnp.asarray(G_HAT) @ J)
 
 
-def actuator_offsets(model: fx.GapModel, e, q, cov):
-    """dq (n,) added to the actuator readings: gear, backlash, gain, coupling and compliance."""
-    comp = fx._effect_block(model, e, "compliance")[:, 0]
-    return fx.joint_offsets(model, e, q, cov) + comp * platform_load(model.robot, q)
+def actuator_offsets(model: GapModel, e, q, cov):
+    """dq (n,) added to the actuator readings: the "joint" effects, then the "actuator_load" ones on tau."""
+    dq = joint_offsets(model, e, q, cov)
+    loaded = model.acting_on("actuator_load")
+    if loaded:
+        tau = platform_load(model.robot, q)
+        for fx in loaded:
+            dq = dq + fx.actuator_offset(params_of(model, e, fx), tau)
+    return dq
 
 
-def tool_pose(model: fx.GapModel, x, q, cov):
+def tool_pose(model: GapModel, x, q, cov):
     """Tool pose (R, p) of the closed mechanism with the robot-side effects, for one sample."""
-    from jaxcal.forward import forward
-
     robot = model.robot
     a, e = x[:robot.n_params], x[model.n_geometry:]
     pose = forward(robot, a, q + actuator_offsets(model, e, q, cov))
-    p0 = robot.base.p if robot.base is not None else jnp.zeros(3)
-    p = p0 + (1.0 + fx._global(model, e, "thermal")[0] * cov[1]) * (pose.p - p0)
-    return pose.R, p
+    return tool_transforms(model, e, pose.R, pose.p, cov)
 
 
-def loads_and_tips(model: fx.GapModel, x, q):
+def loads_and_tips(model: GapModel, x, q):
     """Gravity load on each actuator (N, n; kg m) and the tool point (N, 3) for `where`."""
-    from jaxcal.forward import forward
-
     a = x[:model.robot.n_params]
     return jax.vmap(functools.partial(platform_load, model.robot))(q), forward(model.robot, a, q).p
 
@@ -97,8 +87,6 @@ def loads_and_tips(model: fx.GapModel, x, q):
 def delta_workspace(n: int, seed: int = 0, center=(0.0, 0.0, -1.0), size: float = 0.4) -> np.ndarray:
     """Actuator settings (n, 3) of the nominal Delta reaching points drawn uniformly in a cube of edge
     `size` (m) around `center` (the 400 mm measurement cube of seed 004 §4.4.2), by the inverse solution."""
-    from jaxcal.closure import delta as dl
-
     P = np.asarray(center, float) + size * (np.random.default_rng(seed).random((n, 3)) - 0.5)
     theta, ok = jax.jit(jax.vmap(dl.inverse))(jnp.asarray(P))
     if not bool(jnp.all(ok)):
@@ -106,5 +94,5 @@ def delta_workspace(n: int, seed: int = 0, center=(0.0, 0.0, -1.0), size: float 
     return np.asarray(theta)
 
 
-__all__ = ["CLOSED_EFFECTS", "PLATFORM_MASS", "actuator_offsets", "closed_model", "delta_workspace", "loads_and_tips",
-           "platform_load", "tool_pose"]
+__all__ = ["CLOSED_EFFECTS", "PLATFORM_MASS", "actuator_offsets", "delta_workspace", "loads_and_tips", "platform_load",
+           "tool_pose"]

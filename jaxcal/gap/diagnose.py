@@ -26,6 +26,10 @@ Method (DESIGN "The sim-to-real gap diagnosis"; issue 7):
 4. Verdict: "none" when no candidate is significant and the held-out residual has no structure;
    "unexplained" when structure remains (where.decompose, Bonferroni over features) that the
    selected effects do not capture; else the first selected effect.
+
+Stages, one function each (`diagnose` runs them in turn): `prepare` (padding, folds, covariates),
+`fit_baselines` (1), `linearise` and `separable_variants` (candidates), `select` (2: ranking and
+greedy selection), `refit` and `heldout` (3), `locate` (where), `verdict_of` (4).
 """
 
 from __future__ import annotations
@@ -44,7 +48,8 @@ from jaxcal.fit.data import Dataset
 from jaxcal.gap import fit as gf
 from jaxcal.gap import where as wh
 from jaxcal.gap.baseline import baseline_fits
-from jaxcal.gap.effects import EFFECTS, GLOBAL_EFFECTS, NEEDS, gap_model
+from jaxcal.gap.effect import get_effect, registered_effects
+from jaxcal.gap.model import GapModel, gap_model, input_basis
 
 SEPARABLE_TOL = 1e-6
 MAX_EFFECT_COLUMNS = 18  # effect columns the selected model may add (max_effects x at most 6)
@@ -108,7 +113,7 @@ class Diagnosis:
     timings: dict
     diverged: list = dataclasses.field(default_factory=list)  # [{"fit": "fold b" | "all data", "reason": ...}] refits flagged
     mass_model: str = ""  # masses loading the gravity effects (compliance, link_bending, gravity-load features)
-    _plot_data: dict = dataclasses.field(default_factory=dict, repr=False)
+    plot_data: dict = dataclasses.field(default_factory=dict, repr=False)  # arrays `plot` draws (see `diagnose`)
 
     def to_dict(self) -> dict:
         """JSON-able summary (no arrays)."""
@@ -201,23 +206,6 @@ def _noise_floor_repeats(data, groups):
     return float(np.sqrt(ss / dof))
 
 
-def _joint_motion(model, J, q, npad, m):
-    """Unit direction (N, m, n) of each joint's motion in the weighted residual space, from the effect
-    columns of J: d pred/d q_j = sin q_j J_gear.s1 + cos q_j J_gear.c1 (revolute), J_gain / q_j (prismatic)."""
-    n = q.shape[0]
-    out = np.zeros((n, m, q.shape[1]))
-    for j in range(q.shape[1]):
-        if model.revolute[j]:
-            s1, c1 = model.index("gear", (j,))[:2]
-            col = (np.sin(q[:, j])[:, None] * J[:, s1].reshape(npad, m)[:n] + np.cos(q[:, j])[:, None] * J[:, c1].reshape(npad, m)[:n])
-        else:
-            g = model.index("encoder_gain", (j,))[0]
-            safe = np.where(np.abs(q[:, j]) > 1e-6, q[:, j], np.inf)
-            col = J[:, g].reshape(npad, m)[:n] / safe[:, None]
-        out[:, :, j] = col / np.maximum(np.linalg.norm(col, axis=1, keepdims=True), 1e-300)
-    return out
-
-
 def _prior_step(J, r, cols, rows, scale, mu):
     """First Gauss-Newton step, in typical sizes z (x = x_ref + scale z), of the refit's objective (fit.solve_folds):
     argmin_z ||r + J_cols (scale z)||^2 / s^2 + sum_i mu_i z_i^2 on the rows `rows`, s^2 their mean square residual."""
@@ -226,18 +214,6 @@ def _prior_step(J, r, cols, rows, scale, mu):
     b = np.concatenate([-r[rows] / s, np.zeros(len(cols))])
     nrm = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
     return np.linalg.lstsq(A / nrm, b, rcond=None)[0] / nrm
-
-
-def box_limits(model, moment_norm) -> np.ndarray:
-    """Largest sane change of each parameter from the baseline: BOX (m, rad, relative) for the geometry and for
-    effects that offset a joint or the frame directly; BOX / max |M_j| (kg m) for compliance and bending at joint
-    j, so that their deflection c |M_j| stays within BOX rad over the samples."""
-    lim = np.full(model.n_params, BOX)
-    for i, (effect, j) in enumerate(zip(model.effect_of, model.joint_of)):
-        if effect in ("compliance", "link_bending"):
-            peak = float(np.max(moment_norm[:, j]))
-            lim[model.n_geometry + i] = BOX / peak if peak > 0 else np.inf
-    return lim
 
 
 def _divergence(x_fit, x_base, x_start, r_fit, r_base, rows, cols, limits, names, heldout):
@@ -281,46 +257,80 @@ def _lower_cost_start(x_lin, x_base, q, y, cov, w, model):
     return np.where(better[:, None], x_lin, x_base)
 
 
-class _Linear:
-    """Linearised joint fits around each fold's baseline: held-out SSE and full-data RSS."""
+# ---- stage 1: data preparation -----------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Prepared:
+    """A dataset padded to a bucket size (weight 0), with its folds and covariate matrix (stage 1)."""
 
-    def __init__(self, r, J, fold_rows, valid_rows, pos_rows, k):
-        self.r, self.J, self.fold_rows, self.valid_rows, self.pos_rows, self.k = r, J, fold_rows, valid_rows, pos_rows, k
+    model: GapModel
+    n: int  # samples
+    folds: int
+    q: np.ndarray  # (npad, n_joints), padding at the robot's home
+    y: np.ndarray  # (npad, ...) readings, padding repeats the first
+    cov: np.ndarray  # (npad, 2 + n_joints): time, thermal driver, direction per joint (`fit.covariate_matrix`)
+    valid: np.ndarray  # (npad,) True for real samples
+    fold: np.ndarray  # (npad,) held-out fold of each sample, -1 for padding
+    groups: np.ndarray  # (n,) repeated-pose group of each sample
+    present: frozenset  # covariates present ("time", "thermal", "direction")
+    pos_comp: np.ndarray  # (m,) residual components that are positions
 
-    def evaluate(self, cols):
-        cols = np.asarray(cols, int)
-        sse, sse_pos = 0.0, 0.0
-        for b in range(self.k):
-            train = self.valid_rows & (self.fold_rows != b)
-            test = self.valid_rows & (self.fold_rows == b)
-            d = _lstsq_step(self.J[b], self.r[b], cols, np.flatnonzero(train))
-            h = self.r[b] + self.J[b][:, cols] @ d
-            sse += float(np.sum(h[test] ** 2))
-            sse_pos += float(np.sum(h[test & self.pos_rows] ** 2))
-        full = np.flatnonzero(self.valid_rows)
-        d = _lstsq_step(self.J[self.k], self.r[self.k], cols, full)
-        rss = float(np.sum((self.r[self.k] + self.J[self.k][:, cols] @ d)[full] ** 2))
-        return sse, sse_pos, rss
+    @property
+    def npad(self) -> int:
+        return len(self.q)
+
+    @property
+    def m(self) -> int:
+        return len(self.pos_comp)
+
+    @property
+    def valid_rows(self) -> np.ndarray:
+        return np.repeat(self.valid, self.m)
+
+    @property
+    def fold_rows(self) -> np.ndarray:
+        return np.repeat(self.fold, self.m)
+
+    @property
+    def pos_rows(self) -> np.ndarray:
+        return np.tile(self.pos_comp, self.npad)
+
+    def arrays(self):
+        """(q, y, cov) as device arrays."""
+        return jnp.asarray(self.q), jnp.asarray(self.y), jnp.asarray(self.cov)
+
+    def train(self, b: int) -> np.ndarray:
+        """(npad,) samples fold b trains on; b = folds: all data."""
+        return self.valid & (self.fold != b) if b < self.folds else self.valid
+
+    def fold_weights(self, sigma) -> np.ndarray:
+        """(folds + 1, npad, m) residual weights 1 / sigma on each fold's training samples."""
+        return np.stack([self.train(b)[:, None] / sigma[None, :] for b in range(self.folds + 1)])
+
+    def out_of_fold(self, r) -> np.ndarray:
+        """(n, m): each sample's residual from the fit of the fold that held it out; r (folds + 1, npad, m)."""
+        out = np.zeros((self.n, self.m))
+        for b in range(self.folds):
+            sel = self.fold[:self.n] == b
+            out[sel] = r[b][:self.n][sel]
+        return out
 
 
-def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_effects: int = 3, effects=EFFECTS,
-             seed: int = 0, max_steps: int = 200) -> Diagnosis:
-    """Diagnose the sim-to-real gap of `robot` on `data` (position or pose device); see the module docstring."""
-    t0 = time.perf_counter()
+def prepare(robot, data: Dataset, folds: int, seed: int, effects) -> Prepared:
+    """Validate the inputs; pad q, y and the covariate matrix to `fit.padded_size(n)`; assign folds by
+    repeated-pose group (a group stays in one fold)."""
     device = data.device
     if device.marker_reading not in ("point", "frame"):
         raise ValueError(f"gap diagnosis needs a position or pose device, got {device.kind!r}")
     if data.q.shape[1] != robot.n_inputs:
         raise ValueError(f"data has {data.q.shape[1]} joint columns, robot {robot.name!r} has {robot.n_inputs} inputs")
-    unknown = [e for e in effects if e not in EFFECTS]
+    unknown = [e for e in effects if e not in registered_effects()]
     if unknown:
-        raise ValueError(f"unknown effect(s) {unknown}; expected some of {EFFECTS}")
+        raise ValueError(f"unknown effect(s) {unknown}; expected some of {registered_effects()}")
     model = gap_model(robot, device)
     n = len(data)
     if n < 12:
         raise ValueError(f"gap diagnosis needs at least 12 samples, got {n}")
     C, present = gf.covariate_matrix(model, data.covariates, n)
-    m = len(device.residual_components)
     npad = gf.padded_size(n)
     q = np.tile(robot.home_np, (npad, 1))
     q[:n] = data.q
@@ -328,89 +338,119 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
     y[:n] = data.y
     cov = np.zeros((npad, C.shape[1]))
     cov[:n] = C
-    valid = np.zeros(npad, bool)
-    valid[:n] = True
+    valid = np.arange(npad) < n
     groups = _groups(data.q)
     fold = -np.ones(npad, int)
     fold[:n] = _fold_of(groups, folds, seed)
     pos_comp = np.array([c == "length" for c in device.residual_components])
+    return Prepared(model, n, folds, q, y, cov, valid, fold, groups, frozenset(present), pos_comp)
 
-    comp_sigma = np.where(pos_comp, 1e-3, 1e-3)
-    P = model.n_params
-    x_nom = model.nominal()
-    scale = model.x_scale()
-    qj, yj, cj = jnp.asarray(q), jnp.asarray(y), jnp.asarray(cov)
 
-    def fold_weights(sig):
-        w = np.zeros((folds + 1, npad, m))
-        for b in range(folds + 1):
-            use = valid & (fold != b) if b < folds else valid
-            w[b] = use[:, None] / sig[None, :]
-        return w
+# ---- stage 2: baseline ----------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Baseline:
+    """Geometry-only calibrations of every training fold and of all data (stage 2)."""
 
-    def prior_weights(cols, mu):
-        """mu per z column: on geometry and device-frame columns (and the unused padding), not on effects."""
-        out = np.full(K_active, mu)
-        out[:len(cols)] = np.where(np.asarray(cols) < model.n_geometry, mu, 0.0)
-        return out
+    xs: np.ndarray  # (folds + 1, P): fitted geometry and device frame, effects zero; last row all data
+    starts: np.ndarray  # (folds + 1, P): each fit's start (nominal robot, device frame registered and fitted)
+    converged: np.ndarray  # (folds + 1,)
+    steps: int
+    estimated: np.ndarray  # columns of x the all-data baseline estimates (its base set)
+    sigma: np.ndarray  # (m,) residual weight 1 / sigma per component (position and orientation RMS at the baseline)
+    seconds: float
 
-    def solve(x_refs, cols, sig, z_starts=None, mu=0.0, steps=max_steps):
-        S = jnp.asarray(gf.selection(cols, P, scale, K_active))
-        z_starts = np.zeros((folds + 1, K_active)) if z_starts is None else z_starts
-        args = dict(ref=jnp.asarray(x_refs), w=jnp.asarray(fold_weights(sig)), S=S, mu=jnp.asarray(prior_weights(cols, mu)),
-                    q=qj, y=yj, cov=cj)
-        xs, ok, n_steps = gf.solve_folds(jnp.asarray(x_refs), jnp.asarray(z_starts), args, model=model, max_steps=steps)
-        return np.array(xs), np.asarray(ok), int(np.max(n_steps))
+    def weights(self, prep: Prepared):
+        """(npad, m) weights 1 / sigma on the real samples."""
+        return jnp.asarray(prep.valid[:, None] / self.sigma[None, :])
 
-    # 1. Baseline: `identify` on every training fold and on all data (the calibration core).
-    base_steps = max_steps if robot.closure is None else min(max_steps, CLOSED_BASELINE_STEPS)
-    t_solve = time.perf_counter()
-    train = [fold[:n] != b for b in range(folds)] + [np.ones(n, bool)]
-    cals = baseline_fits(robot, data, train, sigma_position=comp_sigma[0], sigma_orientation=comp_sigma[-1],
-                         max_steps=base_steps)
+
+def fit_baselines(robot, data: Dataset, prep: Prepared, max_steps: int) -> Baseline:
+    """`identify` on every training fold and on all data (`baseline.baseline_fits`, the calibration core), then
+    the residual weights: 1 mm for positions, or, with orientations, each kind's RMS at the all-data baseline."""
+    t = time.perf_counter()
+    model, folds = prep.model, prep.folds
+    sigma = np.full(prep.m, 1e-3)
+    steps = max_steps if robot.closure is None else min(max_steps, CLOSED_BASELINE_STEPS)
+    train = [prep.fold[:prep.n] != b for b in range(folds)] + [np.ones(prep.n, bool)]
+    cals = baseline_fits(robot, data, train, sigma_position=sigma[0], sigma_orientation=sigma[-1], max_steps=steps)
     ng = model.n_geometry
-    xs = np.tile(x_nom, (folds + 1, 1))
-    x0s = xs.copy()  # each baseline's start: nominal robot, device frame registered and fitted
+    xs = np.tile(model.nominal(), (folds + 1, 1))
+    starts = xs.copy()
     for b, cal in enumerate(cals):
-        xs[b, :ng], x0s[b, :ng] = cal.x, cal.x_frames
-    ok_base = np.array([c.converged and c.frames_converged for c in cals])
-    steps_base = max(c.iterations for c in cals)
-    G = cals[folds].estimated
-    K_active = gf.active_size(len(G) + MAX_EFFECT_COLUMNS)
-    w_all = jnp.asarray(valid[:, None] / comp_sigma[None, :])
-    if not pos_comp.all():  # weight position and orientation by their residual RMS at the baseline
-        rb = np.asarray(gf.residual_batch(jnp.asarray(xs[folds:]), qj, yj, cj, jnp.ones((npad, m)), model=model))[0][valid]
-        comp_sigma = np.where(pos_comp, np.sqrt(np.mean(rb[:, pos_comp] ** 2)), np.sqrt(np.mean(rb[:, ~pos_comp] ** 2)))
-        comp_sigma = np.maximum(comp_sigma, 1e-9)
-        w_all = jnp.asarray(valid[:, None] / comp_sigma[None, :])
-    solve_s = time.perf_counter() - t_solve
+        xs[b, :ng], starts[b, :ng] = cal.x, cal.x_frames
+    pos = prep.pos_comp
+    if not pos.all():
+        qj, yj, cj = prep.arrays()
+        rb = np.asarray(gf.residual_batch(jnp.asarray(xs[folds:]), qj, yj, cj, jnp.ones((prep.npad, prep.m)),
+                                          model=model))[0][prep.valid]
+        sigma = np.where(pos, np.sqrt(np.mean(rb[:, pos] ** 2)), np.sqrt(np.mean(rb[:, ~pos] ** 2)))
+        sigma = np.maximum(sigma, 1e-9)
+    return Baseline(xs, starts, np.array([c.converged and c.frames_converged for c in cals]),
+                    max(c.iterations for c in cals), np.asarray(cals[folds].estimated), sigma, time.perf_counter() - t)
 
-    t_lin = time.perf_counter()
-    r, J = gf.jacobians(jnp.asarray(xs), qj, yj, cj, w_all, model=model)
-    r, J = np.asarray(r), np.asarray(J)
-    fold_rows = np.repeat(fold, m)
-    valid_rows = np.repeat(valid, m)
-    pos_rows = np.tile(pos_comp, npad)
-    lin = _Linear(r, J, fold_rows, valid_rows, pos_rows, folds)
-    pos_scale = comp_sigma[0] * 1e3  # weighted position units -> mm
 
-    def rms_mm(sse_pos):
-        return float(np.sqrt(sse_pos / n)) * pos_scale
+# ---- stage 3: candidates and their separability ----------------------------------------------------------------------
+@dataclasses.dataclass
+class Linear:
+    """Residuals r (folds + 1, N*m) and Jacobians J (folds + 1, N*m, P) at each baseline; linearised joint fits
+    of a column set: held-out SSE over the folds and the all-data RSS."""
 
-    # Candidates and their separability (projection on the geometry columns, all data).
-    Jall = J[folds][valid_rows]
-    Qg = scipy.linalg.qr(Jall[:, G], mode="economic")[0]
-    cands, not_candidates = [], {}
+    prep: Prepared
+    r: np.ndarray
+    J: np.ndarray
+
+    def evaluate(self, cols):
+        """(held-out SSE, its position part, all-data RSS) of the Gauss-Newton fit of the columns `cols`."""
+        p = self.prep
+        cols = np.asarray(cols, int)
+        valid, fold = p.valid_rows, p.fold_rows
+        sse, sse_pos = 0.0, 0.0
+        for b in range(p.folds):
+            test = valid & (fold == b)
+            d = _lstsq_step(self.J[b], self.r[b], cols, np.flatnonzero(valid & (fold != b)))
+            h = self.r[b] + self.J[b][:, cols] @ d
+            sse += float(np.sum(h[test] ** 2))
+            sse_pos += float(np.sum(h[test & p.pos_rows] ** 2))
+        full = np.flatnonzero(valid)
+        d = _lstsq_step(self.J[p.folds], self.r[p.folds], cols, full)
+        rss = float(np.sum((self.r[p.folds] + self.J[p.folds][:, cols] @ d)[full] ** 2))
+        return sse, sse_pos, rss
+
+
+def linearise(prep: Prepared, base: Baseline) -> Linear:
+    """Weighted residuals and their Jacobians in every parameter at each fold's baseline."""
+    r, J = gf.jacobians(jnp.asarray(base.xs), *prep.arrays(), base.weights(prep), model=prep.model)
+    return Linear(prep, np.asarray(r), np.asarray(J))
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """A candidate: an effect, restricted to one joint for per-joint effects, and its separable columns."""
+
+    effect: str
+    joints: tuple[int, ...]
+    cols: np.ndarray  # columns of x the geometry does not absorb (independent of each other)
+    absorbed: tuple[str, ...]  # parameters the geometry / device frame absorb exactly
+    note: str
+
+
+def separable_variants(prep: Prepared, lin: Linear, base: Baseline, effects) -> tuple[list[Variant], dict]:
+    """Every candidate effect and joint-restricted variant, with the columns E of its parameters that stay
+    after projecting out the geometry columns (all data): relative norm |E - Q Q^T E| / |E| > SEPARABLE_TOL,
+    then a base set of those. Also {effect: why it is not a candidate} (a covariate missing, no parameters)."""
+    model = prep.model
+    Jall = lin.J[prep.folds][prep.valid_rows]
+    Qg = scipy.linalg.qr(Jall[:, base.estimated], mode="economic")[0]
+    variants, not_candidates = [], {}
     for eff in effects:
-        need = NEEDS.get(eff)
-        if need is not None and need not in present:
+        need = get_effect(eff).needs
+        if need is not None and need not in prep.present:
             not_candidates[eff] = f"needs the {'temperature or time' if need == 'thermal' else need} covariate"
             continue
         if not model.index(eff).size:
             not_candidates[eff] = "not in the effect library of this robot"
             continue
-        variants = [()] if eff in GLOBAL_EFFECTS else [(j,) for j in model.joints_with(eff)]
-        for js in variants:
+        for js in ([(j,) for j in model.joints_with(eff)] if get_effect(eff).per_joint else [()]):
             cols = model.index(eff, js if js else None)
             E = Jall[:, cols]
             En = np.linalg.norm(E, axis=0)
@@ -423,142 +463,292 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
             absorbed = tuple(model.names[cols[i]] for i in range(len(cols)) if i not in set(keep) and En[i] > 0)
             note = "" if keep.size else ("no effect on these readings" if not np.any(En > 0)
                                          else "absorbed by the geometry / device frame")
-            cands.append(dict(effect=eff, js=js, cols=cols[keep], absorbed=absorbed, note=note))
+            variants.append(Variant(eff, js, cols[keep], absorbed, note))
+    return variants, not_candidates
 
-    n_rows = int(valid_rows.sum())
-    n_sep = max(sum(1 for c in cands if len(c["cols"])), 1)
-    jn = robot.joint_names
-    selected, base_cols = [], list(G)
+
+# ---- stage 4: ranking and greedy selection (linearised fits) ---------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Score:
+    """A variant's linearised joint fit with the current model."""
+
+    sse: float  # held-out SSE (weighted)
+    sse_pos: float  # its position part
+    score: float  # n/2 ln(SSE_0 / SSE) - k
+    p: float  # F-test of the nested fit on all data
+    bic: float
+    k: int
+
+
+def score_variants(lin: Linear, cols0, variants, skip) -> tuple[float, list[Score | None]]:
+    """Held-out SSE of the columns cols0, and the score of each variant added to them (None for inseparable
+    variants and those in `skip`): held-out log-likelihood gain minus the parameters added, the nested F-test's
+    p-value and the BIC."""
+    n_rows = int(lin.prep.valid_rows.sum())
+    sse0, _, rss0 = lin.evaluate(cols0)
+    out = []
+    for v in variants:
+        if not len(v.cols) or any(v is s for s in skip):
+            out.append(None)
+            continue
+        cols = list(cols0) + list(v.cols)
+        sse, sse_pos, rss = lin.evaluate(cols)
+        k = len(v.cols)
+        dof = n_rows - len(cols)
+        F = ((rss0 - rss) / k) / max(rss / dof, 1e-300)
+        out.append(Score(sse, sse_pos, 0.5 * n_rows * np.log(sse0 / max(sse, 1e-300)) - k,
+                         float(scipy.stats.f.sf(F, k, dof)) if dof > 0 else 1.0,
+                         n_rows * np.log(rss / n_rows) + len(cols) * np.log(n_rows), k))
+    return sse0, out
+
+
+@dataclasses.dataclass(frozen=True)
+class Selection:
+    """Outcome of stage 4: the ranking (first round, best score first) and the greedy selection."""
+
+    ranking: list  # [Candidate]
+    selected: list  # [Variant] in the order chosen
+    columns: list  # geometry columns + the selected variants' columns
+    seconds: float
+
+
+def select(prep: Prepared, lin: Linear, base: Baseline, variants, alpha: float, max_effects: int, t0: float) -> Selection:
+    """Greedy forward selection: each round scores every variant not yet selected against the current model and
+    adds the best one that is significant (p < alpha / n_separable, lower held-out SSE, positive score); the
+    first round's scores are the ranking."""
+    jn = prep.model.robot.joint_names
+    pos_scale = base.sigma[0] * 1e3  # weighted position units -> mm
+
+    def rms_mm(sse_pos):
+        return float(np.sqrt(sse_pos / prep.n)) * pos_scale
+
+    n_sep = max(sum(1 for v in variants if len(v.cols)), 1)
+    selected, cols = [], list(base.estimated)
+    before = rms_mm(lin.evaluate(cols)[1])
     ranking = None
-    base_eval = lin.evaluate(base_cols)
-    held_rms_before_lin = rms_mm(base_eval[1])
     for _round in range(max_effects):
-        sse0, _, rss0 = lin.evaluate(base_cols)
-        rows = []
-        for c in cands:
-            if not len(c["cols"]) or any(c is s for s in selected):
-                rows.append((c, None))
-                continue
-            cols = base_cols + list(c["cols"])
-            sse, sse_pos, rss = lin.evaluate(cols)
-            k = len(c["cols"])
-            dof = n_rows - len(cols)
-            F = ((rss0 - rss) / k) / max(rss / dof, 1e-300)
-            pval = float(scipy.stats.f.sf(F, k, dof)) if dof > 0 else 1.0
-            score = 0.5 * n_rows * np.log(sse0 / max(sse, 1e-300)) - k
-            bic = n_rows * np.log(rss / n_rows) + len(cols) * np.log(n_rows)
-            rows.append((c, dict(sse=sse, sse_pos=sse_pos, score=score, p=pval, bic=bic, k=k)))
+        sse0, scores = score_variants(lin, cols, variants, selected)
         if ranking is None:
-            ranking = []
-            for c, s in rows:
-                names = tuple(jn[j] for j in c["js"])
-                if s is None:
-                    ranking.append(Candidate(c["effect"], names, held_rms_before_lin, np.nan, -np.inf, np.nan, 1.0, 0, False,
-                                             c["absorbed"], c["note"]))
-                else:
-                    ranking.append(Candidate(c["effect"], names, held_rms_before_lin, rms_mm(s["sse_pos"]), float(s["score"]),
-                                             float(s["bic"]), s["p"], s["k"], True, c["absorbed"], "",
-                                             tuple(int(i) for i in c["cols"])))
-            ranking.sort(key=lambda c: -c.score)
-        ok = [(c, s) for c, s in rows if s is not None and s["p"] < alpha / n_sep and s["sse"] < sse0 and s["score"] > 0]
+            ranking = sorted((_candidate(v, s, before, rms_mm, jn) for v, s in zip(variants, scores)), key=lambda c: -c.score)
+        ok = [(v, s) for v, s in zip(variants, scores) if s is not None and s.p < alpha / n_sep and s.sse < sse0 and s.score > 0]
         if not ok:
             break
-        best, _ = max(ok, key=lambda cs: cs[1]["score"])
+        best = max(ok, key=lambda vs: vs[1].score)[0]
         selected.append(best)
-        base_cols = base_cols + list(best["cols"])
-    lin_s = time.perf_counter() - t_lin
+        cols = cols + list(best.cols)
+    return Selection(ranking, selected, cols, time.perf_counter() - t0)
 
-    # How far: nonlinear refit of the selected model on every fold, regularised toward the fold's baseline.
-    t_fin = time.perf_counter()
-    w_unit = jnp.asarray(valid[:, None] / comp_sigma[None, :])
-    r_base = np.asarray(gf.residual_batch(jnp.asarray(xs), qj, yj, cj, w_unit, model=model))
+
+def _candidate(v: Variant, s: Score | None, before: float, rms_mm, joint_names) -> Candidate:
+    names = tuple(joint_names[j] for j in v.joints)
+    if s is None:
+        return Candidate(v.effect, names, before, np.nan, -np.inf, np.nan, 1.0, 0, False, v.absorbed, v.note)
+    return Candidate(v.effect, names, before, rms_mm(s.sse_pos), float(s.score), float(s.bic), s.p, s.k, True, v.absorbed,
+                     "", tuple(int(i) for i in v.cols))
+
+
+# ---- stage 5: nonlinear refit -------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Refit:
+    """The selected model refitted on every fold and on all data (stage 5); a diverged fit is its baseline."""
+
+    xs: np.ndarray  # (folds + 1, P)
+    converged: np.ndarray
+    steps: int
+    r_base: np.ndarray  # (folds + 1, npad, m) weighted residuals of the baselines
+    r: np.ndarray  # (folds + 1, npad, m) of the refits
+    diverged: list  # [{"fit": "fold b" | "all data", "reason": ...}]
+
+    @property
+    def all_data_diverged(self) -> bool:
+        return any(d["fit"] == "all data" for d in self.diverged)
+
+    def diverged_folds(self) -> list[int]:
+        return [int(d["fit"].split()[1]) - 1 for d in self.diverged if d["fit"] != "all data"]
+
+
+def _prior_weights(cols, mu: float, n_geometry: int, K: int) -> np.ndarray:
+    """mu per z column: on geometry and device-frame columns (and the unused padding), not on effects."""
+    out = np.full(K, mu)
+    out[:len(cols)] = np.where(np.asarray(cols) < n_geometry, mu, 0.0)
+    return out
+
+
+def box_limits(model: GapModel, moment_norm) -> np.ndarray:
+    """Largest sane change of each parameter from the baseline: BOX (m, rad, relative) for the geometry, and each
+    effect's `box_limit(BOX, max_samples |M_j|)` (BOX, or BOX / max |M_j| for the gravity effects at joint j)."""
+    lim = np.full(model.n_params, BOX)
+    peak = np.max(moment_norm, axis=0)
+    for i, (effect, j) in enumerate(zip(model.effect_of, model.joint_of)):
+        lim[model.n_geometry + i] = model.effect(effect).box_limit(BOX, float(peak[j]) if j >= 0 else 0.0)
+    return lim
+
+
+def refit(prep: Prepared, base: Baseline, lin: Linear, sel: Selection, max_steps: int) -> Refit:
+    """LM on the selected columns per fold, regularised toward the fold's baseline (mu = PRIOR_MU; 0 for closed
+    loops), from the regularised Gauss-Newton step where it lowers the training cost; fits that diverge
+    (`_divergence`) are flagged and replaced by their baseline."""
+    model, folds = prep.model, prep.folds
+    qj, yj, cj = prep.arrays()
+    w = base.weights(prep)
+    r_base = np.asarray(gf.residual_batch(jnp.asarray(base.xs), qj, yj, cj, w, model=model))
+    if not sel.selected:
+        return Refit(base.xs, base.converged, 0, r_base, r_base, [])
+    cols = sel.columns
+    K = gf.active_size(len(base.estimated) + MAX_EFFECT_COLUMNS)
+    scale = model.x_scale()
+    mu = PRIOR_MU if model.robot.closure is None else 0.0
+    prior = _prior_weights(cols, mu, model.n_geometry, K)
+    z_start = np.zeros((folds + 1, K))
+    for b in range(folds + 1):
+        train = np.flatnonzero(np.repeat(prep.train(b), prep.m))
+        z_start[b, :len(cols)] = _prior_step(lin.J[b], lin.r[b], cols, train, scale, prior[:len(cols)])
+    x_try = base.xs.copy()
+    x_try[:, cols] += scale[cols] * z_start[:, :len(cols)]
+    keep = _lower_cost_start(x_try, base.xs, qj, yj, cj, prep.fold_weights(base.sigma), model) == x_try
+    z_start[~np.all(keep, axis=1)] = 0.0  # that fold starts from its baseline
+    args = dict(ref=jnp.asarray(base.xs), w=jnp.asarray(prep.fold_weights(base.sigma)),
+                S=jnp.asarray(gf.selection(cols, model.n_params, scale, K)), mu=jnp.asarray(prior), q=qj, y=yj, cov=cj)
+    xs, ok, n_steps = gf.solve_folds(jnp.asarray(base.xs), jnp.asarray(z_start), args, model=model, max_steps=max_steps)
+    xs, ok = np.array(xs), np.asarray(ok)
+    r = np.array(gf.residual_batch(jnp.asarray(xs), qj, yj, cj, w, model=model))
+    limits = box_limits(model, np.asarray(gf.moment_norms(jnp.asarray(base.xs[folds]), qj, model=model))[:prep.n])
     diverged = []
-    if selected:  # start from the regularised Gauss-Newton step of every fold
-        prior_mu = PRIOR_MU if robot.closure is None else 0.0
-        mu = prior_weights(base_cols, prior_mu)[:len(base_cols)]
-        z_start = np.zeros((folds + 1, K_active))
-        for b in range(folds + 1):
-            train = np.flatnonzero(valid_rows & (fold_rows != b)) if b < folds else np.flatnonzero(valid_rows)
-            z_start[b, :len(base_cols)] = _prior_step(J[b], r[b], base_cols, train, scale, mu)
-        x_try = xs.copy()
-        x_try[:, base_cols] += scale[base_cols] * z_start[:, :len(base_cols)]
-        keep = _lower_cost_start(x_try, xs, qj, yj, cj, fold_weights(comp_sigma), model) == x_try
-        z_start[~np.all(keep, axis=1)] = 0.0  # that fold starts from its baseline
-        xs_final, ok_final, steps_final = solve(xs, base_cols, comp_sigma, z_start, prior_mu)
-        r_fin = np.array(gf.residual_batch(jnp.asarray(xs_final), qj, yj, cj, w_unit, model=model))
-        limits = box_limits(model, np.asarray(gf.moment_norms(jnp.asarray(xs[folds]), qj, model=model))[:n])
-        for b in range(folds + 1):
-            rows = (valid & (fold == b)) if b < folds else valid
-            why = _divergence(xs_final[b], xs[b], x0s[b], r_fin[b], r_base[b], rows, np.asarray(base_cols), limits, model.names,
-                              b < folds)
-            if why:
-                diverged.append({"fit": f"fold {b + 1}" if b < folds else "all data", "reason": why})
-                xs_final[b], r_fin[b] = xs[b], r_base[b]
-    else:
-        xs_final, ok_final, steps_final, r_fin = xs, ok_base, 0, r_base
-    all_data_diverged = any(d["fit"] == "all data" for d in diverged)
+    for b in range(folds + 1):
+        rows = (prep.valid & (prep.fold == b)) if b < folds else prep.valid
+        why = _divergence(xs[b], base.xs[b], base.starts[b], r[b], r_base[b], rows, np.asarray(cols), limits, model.names,
+                          b < folds)
+        if why:
+            diverged.append({"fit": f"fold {b + 1}" if b < folds else "all data", "reason": why})
+            xs[b], r[b] = base.xs[b], r_base[b]
+    return Refit(xs, ok, int(np.max(n_steps)), r_base, r, diverged)
 
-    def out_of_fold(rr):
-        out = np.zeros((n, m))
-        for b in range(folds):
-            sel = fold[:n] == b
-            out[sel] = rr[b][:n][sel]
-        return out
 
-    oof_base, oof_fin = out_of_fold(r_base), out_of_fold(r_fin)
-    # A diverged fold's held-out samples are left out of before / after / structure (scored on the other folds).
-    bad = [int(d["fit"].split()[1]) - 1 for d in diverged if d["fit"] != "all data"]
-    scored = ~np.isin(fold[:n], bad)
+# ---- stage 6: held-out size of the gap -----------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class Heldout:
+    """Held-out position RMS before and after the selected model, the noise floor and the shrink (stage 6)."""
+
+    before: float  # mm
+    after: float  # mm
+    noise_floor: float  # mm
+    noise_source: str
+    shrink: float
+    oof_base: np.ndarray  # (n, m) out-of-fold weighted residuals of the baselines
+    oof: np.ndarray  # (n, m) of the refits
+    scored: np.ndarray  # (n,) samples scored (held out by a fold whose refit did not diverge)
+
+
+def heldout(prep: Prepared, base: Baseline, sel: Selection, fit: Refit, data: Dataset) -> Heldout:
+    """Out-of-fold residuals; RMS before / after on the samples of the folds whose refit did not diverge; the noise
+    floor (repeated poses, else the all-data fit's residual with its degrees of freedom); shrink_fraction."""
+    n, m = prep.n, prep.m
+    pos_scale = base.sigma[0] * 1e3
+    oof_base, oof = prep.out_of_fold(fit.r_base), prep.out_of_fold(fit.r)
+    scored = ~np.isin(prep.fold[:n], fit.diverged_folds())
     scored = scored if scored.any() else np.ones(n, bool)  # every fold diverged: the baseline everywhere
     before = float(np.sqrt(np.mean(np.sum(oof_base[scored, :3] ** 2, axis=1)))) * pos_scale
-    after = float(np.sqrt(np.mean(np.sum(oof_fin[scored, :3] ** 2, axis=1)))) * pos_scale
-
-    floor = _noise_floor_repeats(data, groups)
+    after = float(np.sqrt(np.mean(np.sum(oof[scored, :3] ** 2, axis=1)))) * pos_scale
+    floor = _noise_floor_repeats(data, prep.groups)
     if floor is not None:
-        noise_floor, noise_source = floor * 1e3, "repeated poses"
+        noise_floor, source = floor * 1e3, "repeated poses"
     else:
-        rf = r_fin[folds][:n, :3]
-        dof = max(n * m - len(G if all_data_diverged else base_cols), 1)
+        rf = fit.r[prep.folds][:n, :3]
+        dof = max(n * m - len(base.estimated if fit.all_data_diverged else sel.columns), 1)
         noise_floor = float(np.sqrt(np.sum(rf**2) / n * (n * m) / dof)) * pos_scale
-        noise_source = "fit residual with its degrees of freedom" + (" (baseline: the refit diverged)" if all_data_diverged else "")
+        source = "fit residual with its degrees of freedom" + (" (baseline: the refit diverged)" if fit.all_data_diverged else "")
+    shrink = shrink_fraction(before, after, noise_floor) if sel.selected else 0.0
+    return Heldout(before, after, noise_floor, source, shrink, oof_base, oof, scored)
 
-    shrink = shrink_fraction(before, after, noise_floor) if selected else 0.0
 
-    # Where: baseline out-of-fold residual against features; structure left after the selected model.
-    loads, tips = gf.loads_and_tips(jnp.asarray(xs[folds]), qj, cj, model=model)
+# ---- stage 7: where ------------------------------------------------------------------------------------------------------
+def joint_motion(model: GapModel, J, phi, n: int, npad: int, m: int) -> np.ndarray:
+    """Unit direction (n, m, n_joints) of each joint's motion in the weighted residual space, d r / d q_j, from the
+    "joint" effect columns of J at zero effects: d r / d theta_p = phi_p d r / d q_j, so sum_p phi_p J_p over
+    joint j's parameters is (sum_p phi_p^2) d r / d q_j. phi: `model.input_basis` (n, n_effect_params)."""
+    out = np.zeros((n, m, model.robot.n_inputs))
+    joint_of = np.asarray(model.joint_of)
+    for j in range(model.robot.n_inputs):
+        col = np.zeros((n, m))
+        for p in np.flatnonzero(joint_of == j):
+            col += phi[:, p, None] * J[:, model.n_geometry + p].reshape(npad, m)[:n]
+        out[:, :, j] = col / np.maximum(np.linalg.norm(col, axis=1, keepdims=True), 1e-300)
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Where:
+    """Feature decomposition of the held-out residual (stage 7)."""
+
+    summary: dict  # {"axis_rms", "features" (baseline), "features_after" (selected model)}
+    structure_p: float  # Bonferroni p-value of the structure left after the selected model
+    tips: np.ndarray  # (n, 3) tool points at the all-data baseline
+    motion: np.ndarray  # (n, m, n_joints) `joint_motion`
+
+
+def locate(prep: Prepared, base: Baseline, lin: Linear, ho: Heldout, data: Dataset, seed: int) -> Where:
+    """The baseline's and the selected model's out-of-fold residuals against the features (`where.decompose`:
+    joint angles along each joint's motion, gravity loads, covariates, workspace), RMS per axis."""
+    model, n, m = prep.model, prep.n, prep.m
+    qj, _, cj = prep.arrays()
+    loads, tips = gf.loads_and_tips(jnp.asarray(base.xs[prep.folds]), qj, cj, model=model)
     loads, tips = np.asarray(loads)[:n], np.asarray(tips)[:n]
+    jn = model.robot.joint_names
     bases = wh.feature_bases(data.q, model.revolute, jn, loads, tips, data.covariates)
+    motion = joint_motion(model, lin.J[prep.folds], input_basis(model, data.q, prep.cov[:n]), n, prep.npad, m)
+    directions = {f"joint angle {jn[j]}": motion[:, :, j] for j in range(model.robot.n_inputs)}
+    s = ho.scored
+    feats_base = wh.decompose(ho.oof_base, bases, tips, directions, seed=seed)
+    feats = wh.decompose(ho.oof[s], {k: v[s] for k, v in bases.items()}, tips[s], {k: v[s] for k, v in directions.items()},
+                         seed=seed)
+    structure_p = float(min(1.0, min(f.p_value for f in feats) * len(feats))) if feats else 1.0
     labels = ["x", "y", "z", "rx", "ry", "rz"][:m]
-    motion = _joint_motion(model, J[folds], data.q, npad, m)
-    directions = {f"joint angle {jn[j]}": motion[:, :, j] for j in range(robot.n_inputs)}
-    feats_base = wh.decompose(oof_base, bases, tips, directions, seed=seed)
-    feats_fin = wh.decompose(oof_fin[scored], {k: v[scored] for k, v in bases.items()}, tips[scored],
-                             {k: v[scored] for k, v in directions.items()}, seed=seed)
-    structure_p = float(min(1.0, min(f.p_value for f in feats_fin) * len(feats_fin))) if feats_fin else 1.0
-    axis = wh.axis_rms(oof_base * comp_sigma[None, :] * 1e3, [f"{a} ({'mm' if i < 3 else 'mrad'})" for i, a in enumerate(labels)])
-    where = {"axis_rms": axis,
-             "features": [dataclasses.asdict(f) for f in feats_base],
-             "features_after": [dataclasses.asdict(f) for f in feats_fin]}
+    axis = wh.axis_rms(ho.oof_base * base.sigma[None, :] * 1e3,
+                       [f"{a} ({'mm' if i < 3 else 'mrad'})" for i, a in enumerate(labels)])
+    summary = {"axis_rms": axis, "features": [dataclasses.asdict(f) for f in feats_base],
+               "features_after": [dataclasses.asdict(f) for f in feats]}
+    return Where(summary, structure_p, tips, motion)
 
+
+# ---- stage 8: verdict ----------------------------------------------------------------------------------------------------
+def verdict_of(structure_p: float, alpha: float, selected, joint_names) -> tuple[str, tuple[str, ...]]:
+    """"unexplained" when structure is left (structure_p < alpha), "none" when nothing was selected, else the first
+    selected effect and the joints it was selected at."""
     if structure_p < alpha:
-        verdict, joints = "unexplained", ()
-    elif not selected:
-        verdict, joints = "none", ()
-    else:
-        verdict = selected[0]["effect"]
-        joints = tuple(jn[j] for s in selected if s["effect"] == verdict for j in s["js"])
-    params = {}
-    for s in ([] if all_data_diverged else selected):
-        for i in s["cols"]:
-            params[model.names[i]] = float(xs_final[folds][i])
-    steps = {"baseline": steps_base, "final": steps_final,
-             "converged": bool(np.all(ok_base) and np.all(ok_final))}
-    timings = {"lm_steps": steps, "solve_s": solve_s, "linear_s": lin_s, "final_s": time.perf_counter() - t_fin,
+        return "unexplained", ()
+    if not selected:
+        return "none", ()
+    verdict = selected[0].effect
+    return verdict, tuple(joint_names[j] for s in selected if s.effect == verdict for j in s.joints)
+
+
+def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_effects: int = 3, effects=None,
+             seed: int = 0, max_steps: int = 200) -> Diagnosis:
+    """Diagnose the sim-to-real gap of `robot` on `data` (position or pose device) among `effects` (default: every
+    registered effect); see the module docstring."""
+    t0 = time.perf_counter()
+    effects = registered_effects() if effects is None else tuple(effects)
+    prep = prepare(robot, data, folds, seed, effects)
+    base = fit_baselines(robot, data, prep, max_steps)
+    t_lin = time.perf_counter()
+    lin = linearise(prep, base)
+    variants, not_candidates = separable_variants(prep, lin, base, effects)
+    sel = select(prep, lin, base, variants, alpha, max_effects, t_lin)
+    t_fin = time.perf_counter()
+    fit = refit(prep, base, lin, sel, max_steps)
+    ho = heldout(prep, base, sel, fit, data)
+    where = locate(prep, base, lin, ho, data, seed)
+    verdict, joints = verdict_of(where.structure_p, alpha, sel.selected, robot.joint_names)
+    model, jn = prep.model, robot.joint_names
+    params = {model.names[i]: float(fit.xs[folds][i])
+              for s in ([] if fit.all_data_diverged else sel.selected) for i in s.cols}
+    steps = {"baseline": base.steps, "final": fit.steps, "converged": bool(np.all(base.converged) and np.all(fit.converged))}
+    timings = {"lm_steps": steps, "solve_s": base.seconds, "linear_s": sel.seconds, "final_s": time.perf_counter() - t_fin,
                "total_s": time.perf_counter() - t0}
-    plot_data = {"q": data.q, "motion": motion, "tips": tips, "oof_base": oof_base * comp_sigma * 1e3,
-                 "oof_final": oof_fin * comp_sigma * 1e3,
-                 "joint_names": jn, "revolute": model.revolute, "labels": labels}
-    return Diagnosis(robot.name, device.kind, verdict, joints, ranking, shrink, where, before, after, noise_floor, noise_source,
-                     [(s["effect"], tuple(jn[j] for j in s["js"])) for s in selected], params, structure_p, not_candidates,
-                     n, folds, timings, diverged=diverged, mass_model=model.mass_model,
-                     _plot_data=plot_data)
+    plot_data = {"q": data.q, "motion": where.motion, "tips": where.tips, "oof_base": ho.oof_base * base.sigma * 1e3,
+                 "oof_final": ho.oof * base.sigma * 1e3, "joint_names": jn, "revolute": model.revolute,
+                 "labels": ["x", "y", "z", "rx", "ry", "rz"][:prep.m]}
+    return Diagnosis(robot.name, data.device.kind, verdict, joints, sel.ranking, ho.shrink, where.summary, ho.before, ho.after,
+                     ho.noise_floor, ho.noise_source, [(s.effect, tuple(jn[j] for j in s.joints)) for s in sel.selected],
+                     params, where.structure_p, not_candidates, prep.n, folds, timings, diverged=fit.diverged,
+                     mass_model=model.mass_model, plot_data=plot_data)

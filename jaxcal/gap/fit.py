@@ -19,7 +19,10 @@ import numpy as np
 import optimistix as optx
 
 from jaxcal.fit.core import make_solver
-from jaxcal.gap.effects import GapModel, residuals
+from jaxcal.gap import closed
+from jaxcal.gap.effects import gravity_loads, joint_axes, read, residuals
+from jaxcal.gap.model import GapModel
+from jaxcal.kin.model import frames_single, joint_variables
 
 SIZE_BUCKETS = (96, 192, 320)  # padded sample counts; beyond 320, multiples of 128
 RTOL, ATOL = 1e-5, 1e-7  # LM tolerances on the cost and on the step z (z in units of the typical parameter size)
@@ -127,8 +130,7 @@ def jacobians(xs, q, y, cov, w, *, model):
 
 @functools.partial(jax.jit, static_argnames=("model",))
 def predict(x, q, cov, *, model):
-    from jaxcal.gap.effects import read
-
+    """Predicted readings (N, ...) at x."""
     return jax.vmap(functools.partial(read, model, x))(q, cov)
 
 
@@ -136,12 +138,7 @@ def predict(x, q, cov, *, model):
 def loads_and_tips(x, q, cov, *, model):
     """Gravity load about each joint axis (N, n; kg m, the model's masses) and the tip position (N, 3)."""
     if model.robot.closure is not None:
-        from jaxcal.gap.closed import loads_and_tips as closed_loads
-
-        return closed_loads(model, x, q)
-    from jaxcal.gap.effects import gravity_loads, joint_axes
-    from jaxcal.kin.model import frames_single, joint_variables
-
+        return closed.loads_and_tips(model, x, q)
     a = x[:model.robot.n_params]
 
     def one(qi):
@@ -157,9 +154,6 @@ def moment_norms(x, q, *, model):
     """|M_j| (N, n; kg m): norm of the gravity moment about each joint of every sample (compliance and bending act on it)."""
     if model.robot.closure is not None:  # closed loops: compliance acts on the actuator load tau_j (jaxcal/gap/closed.py)
         return jnp.abs(loads_and_tips(x, q, None, model=model)[0])
-    from jaxcal.gap.effects import gravity_loads, joint_axes
-    from jaxcal.kin.model import frames_single, joint_variables
-
     a = x[:model.robot.n_params]
 
     def one(qi):

@@ -27,7 +27,7 @@ def _quiver(ax, tips, res, i, j, title):
 
 def plot_diagnosis(d, folder) -> list[str]:
     """Write quiver.png, joints.png and diagnosis.json into `folder`; returns the paths."""
-    pdata = d._plot_data
+    pdata = d.plot_data
     tips, q = pdata["tips"], pdata["q"]
     before, after = pdata["oof_base"], pdata["oof_final"]
     os.makedirs(folder, exist_ok=True)

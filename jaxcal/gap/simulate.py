@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.fit.data import Dataset
-from jaxcal.gap.effects import GapModel, gap_model
 from jaxcal.gap.fit import covariate_matrix, padded_size, predict
+from jaxcal.gap.model import GapModel, gap_model
 from jaxcal.measure import as_device
 
 
