@@ -133,6 +133,9 @@ class Diagnosis:
         lines = [f"gap diagnosis of {self.robot_name} from {self.n_samples} {self.device_kind} samples ({self.folds}-fold held out)"]
         j = f" at {', '.join(self.joints)}" if self.joints else ""
         lines.append(f"verdict: {self.verdict}{j}")
+        if not self.timings.get("lm_steps", {}).get("baseline_converged", True):
+            lines.append(f"warning: the baseline calibration did not converge in {self.timings['lm_steps']['baseline']} steps: "
+                         "geometry left unfitted reads as structure, so the verdict is unreliable (raise max_steps / --max-steps)")
         lines.append(f"held-out RMS {self.heldout_rms_before:.4g} -> {self.heldout_rms_after:.4g} mm, shrink {100 * self.shrink:.1f} %"
                      f" of the held-out mean square; noise floor {self.noise_floor:.4g} mm ({self.noise_source}),"
                      f" remainder {self.heldout_rms_after / max(self.noise_floor, 1e-300):.2f} x floor")
@@ -742,7 +745,8 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
     model, jn = prep.model, robot.joint_names
     params = {model.names[i]: float(fit.xs[folds][i])
               for s in ([] if fit.all_data_diverged else sel.selected) for i in s.cols}
-    steps = {"baseline": base.steps, "final": fit.steps, "converged": bool(np.all(base.converged) and np.all(fit.converged))}
+    steps = {"baseline": base.steps, "final": fit.steps, "converged": bool(np.all(base.converged) and np.all(fit.converged)),
+             "baseline_converged": bool(np.all(base.converged))}
     timings = {"lm_steps": steps, "solve_s": base.seconds, "linear_s": sel.seconds, "final_s": time.perf_counter() - t_fin,
                "total_s": time.perf_counter() - t0}
     plot_data = {"q": data.q, "motion": where.motion, "tips": where.tips, "oof_base": ho.oof_base * base.sigma * 1e3,
