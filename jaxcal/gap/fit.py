@@ -1,6 +1,6 @@
 """Joint identification of geometry, device frame and effects for the gap diagnosis.
 
-The stacked residual generalises `jaxcal.fit.identify._stacked` with per-sample covariates and
+The stacked residual generalises `jaxcal.fit.core.stacked` with per-sample covariates and
 effect parameters: data rows w * (y - read(x, q, c)) with x = x_ref + S z (S selects the estimated
 parameters at their typical size, so the others stay at x_ref), and Tikhonov rows sqrt(mu) z that
 hold the estimated geometry near x_ref (seed 004 eq 3.12, as `jaxcal.realdata`'s "prior").
