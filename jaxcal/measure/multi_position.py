@@ -19,7 +19,27 @@ def rms_point_error(res):
     return jnp.sqrt(jnp.mean(jnp.sum(r**2, -1), -1))
 
 
-class MultiPosition(Device):
+class PointSetDevice(Device):
+    """Readings that are K points (N, K, 3) in the device frame: the residual, errors, noise and points
+    shared by the multi-marker and three-point devices."""
+
+    def residual(self, pred, meas):
+        """y_meas - y_pred, flattened (3 K,)."""
+        return (meas - pred).reshape(-1)
+
+    def split_errors(self, res):
+        """(RMS over the K points of the 3-D error, None)."""
+        return rms_point_error(res), None
+
+    def add_noise(self, y, normal, sigma_position, sigma_orientation):
+        """y + sigma_position n, n (N, K, 3)."""
+        return additive_noise(y, normal, sigma_position)
+
+    def points(self, y):
+        return y
+
+
+class MultiPosition(PointSetDevice):
     """K marker points read in one device frame."""
 
     kind = "multi_position"
@@ -56,20 +76,6 @@ class MultiPosition(Device):
         """y_k = D^-1 T_tip m_k, m_k = d[6 + 3(k-1) : 9 + 3(k-1)]."""
         return frame_from_params(d[0:6]).inverse().apply(tip.apply(d[6:].reshape(-1, 3)))
 
-    def residual(self, pred, meas):
-        """y_meas - y_pred, flattened (3 K,)."""
-        return (meas - pred).reshape(-1)
-
-    def split_errors(self, res):
-        """(RMS over the K points of the 3-D error, None)."""
-        return rms_point_error(res), None
-
-    def add_noise(self, y, normal, sigma_position, sigma_orientation):
-        """y + sigma_position n, n (N, K, 3)."""
-        return additive_noise(y, normal, sigma_position)
-
-    def points(self, y):
-        return y
 
 
 register(MultiPosition, "markers")

@@ -10,15 +10,15 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.measure.base import FRAME_INDEX, Device, additive_noise, frame_from_params, frame_names
-from jaxcal.measure.multi_position import rms_point_error
+from jaxcal.measure.base import FRAME_INDEX, frame_from_params, frame_names
+from jaxcal.measure.multi_position import PointSetDevice
 from jaxcal.measure.registry import register
 
 DEFAULT_TARGETS = ((0.05, 0.0, 0.0), (0.0, 0.05, 0.0), (0.0, 0.0, 0.05))  # m, in the tip frame
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class ThreePoint(Device):
+class ThreePoint(PointSetDevice):
     """A known three-sphere target read in the device frame."""
 
     targets: np.ndarray = None  # sphere centres in the tip frame (3, 3)
@@ -42,20 +42,6 @@ class ThreePoint(Device):
         """y_k = D^-1 T_tip t_k for the three known centres t_k."""
         return frame_from_params(d[0:6]).inverse().apply(tip.apply(jnp.asarray(self.targets)))
 
-    def residual(self, pred, meas):
-        """y_meas - y_pred, flattened (9,)."""
-        return (meas - pred).reshape(-1)
-
-    def split_errors(self, res):
-        """(RMS over the three points of the 3-D error, None)."""
-        return rms_point_error(res), None
-
-    def add_noise(self, y, normal, sigma_position, sigma_orientation):
-        """y + sigma_position n, n (N, 3, 3)."""
-        return additive_noise(y, normal, sigma_position)
-
-    def points(self, y):
-        return y
 
 
 def three_point_orientation(P_initial, P_final):
