@@ -58,6 +58,9 @@ SOLVERS = {
 # ~1e-13, and MRR-1's six-parameter modules left pivots of 1e-14 that made the estimate's condition number
 # 1e14-1e15 (parameters whose values are arbitrary). One rule for every robot.
 BASE_TOL = 1e-10
+# Frames-only fit: device parameters whose QR pivot (typical-size units) is below this share of the largest
+# are left at their prior until the full fit (`frames_estimated`).
+START_TOL = 1e-2
 # Readings whose best similarity registration onto the model needs one of these scales are in another unit.
 UNIT_SCALES = {"mm": 1e-3, "cm": 1e-2, "inch": 0.0254}
 
@@ -94,6 +97,16 @@ def stacked(robot: Robot, device: Device, x, args):
     return jnp.concatenate([r, jnp.sqrt(args["mu"]) * m * scaled + (1.0 - m) * scaled, 1e6 * m * over / args["x_scale"]])
 
 
+def stacked_scaled(robot: Robot, device: Device, z, args):
+    """`stacked` in the scaled unknowns z = (x - a_ref) / x_scale, the variables the solver works in.
+
+    Levenberg-Marquardt damps every unknown alike (optimistix adds lambda I), so in raw units a metre,
+    a radian and a gain of 1 would be one step size; in z one unit is a typical change of each entry
+    (MINPACK's diagonal scaling with fixed scales). On the Delta (seed 004 Table 4.6: lengths of 0.1-0.4 m,
+    angles, 9 tracker-frame entries) raw units took > 200 steps where z takes tens."""
+    return stacked(robot, device, args["a_ref"] + args["x_scale"] * z, args)
+
+
 @dataclasses.dataclass(frozen=True)
 class Settings:
     """Static solver settings (hashable: they select the compiled solver)."""
@@ -105,10 +118,12 @@ class Settings:
 
 
 def _solve_one(x0, args, robot, device, settings: Settings):
-    fn = functools.partial(stacked, robot, device)
+    fn = functools.partial(stacked_scaled, robot, device)
     slv = make_solver(settings.solver, settings.rtol, settings.atol)
-    sol = optx.least_squares(fn, slv, x0, args, max_steps=settings.max_steps, throw=False)
-    return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"], jnp.sum(fn(sol.value, args) ** 2)
+    z0 = (x0 - args["a_ref"]) / args["x_scale"]
+    sol = optx.least_squares(fn, slv, z0, args, max_steps=settings.max_steps, throw=False)
+    x = args["a_ref"] + args["x_scale"] * sol.value
+    return x, sol.result == optx.RESULTS.successful, sol.stats["num_steps"], jnp.sum(fn(sol.value, args) ** 2)
 
 
 @functools.partial(jax.jit, static_argnames=("robot", "device", "settings", "batched"))
@@ -330,16 +345,34 @@ def solve_batch(problem: Problem, x0s, args, settings: Settings, batched) -> tup
     return np.asarray(x), np.asarray(ok), np.asarray(steps), np.asarray(cost), dt
 
 
+def frames_estimated(problem: Problem, x) -> np.ndarray:
+    """Indices of the device parameters the frames-only fit estimates at x: the base set (device priorities) of
+    the free device columns of the Jacobian in typical-size units, at the relative pivot tolerance START_TOL.
+
+    With the robot at its prior, the readings carry the robot's own errors; a device parameter whose column
+    lies within START_TOL of the span of the others would absorb them amplified ~1/pivot (a Delta's platform
+    barely turns, so its tool offset and the tracker's position differ by pivots of ~1e-6: 1 mm of geometry
+    error put both ~300 m away). Those parameters stay at their prior until the full fit, whose base set
+    decides them with the geometry."""
+    nr = problem.robot.n_params
+    cand = np.flatnonzero(problem.free[nr:]) + nr
+    if not cand.size:
+        return cand
+    J = jacobian(problem.robot, problem.device, x, problem.q, problem.y, problem.w)[:, cand]
+    bs = base_set(J * x_scale(problem.units)[cand], problem.priority[cand], c=START_TOL / np.finfo(float).eps)
+    return np.sort(cand[bs.independent])
+
+
 def start(problem: Problem, settings: Settings) -> tuple[np.ndarray, Solution | None, bool]:
     """The one start: the device frame registered onto the nominal model (where that lowers the cost), then
-    every free device parameter fitted with the robot at its prior. Returns (x, frames-only solution, registered)."""
-    nr = problem.robot.n_params
+    the device parameters the nominal model can determine (`frames_estimated`) fitted with the robot at its
+    prior. Returns (x, frames-only solution, registered)."""
     x = np.array(problem.a_ref, float)
     reg = registered_frame(problem, x)
     registered = reg is not None and problem.cost(reg) < problem.cost(x)
     if registered:
         x = reg
-    dev_idx = np.flatnonzero(problem.free[nr:]) + nr
+    dev_idx = frames_estimated(problem, x)
     if not dev_idx.size:
         return x, None, registered
     sol = solve(problem, x, dev_idx, settings)
@@ -444,5 +477,5 @@ def drop_unclosed(robot: Robot, a0, q) -> np.ndarray:
 
 
 __all__ = ["Calibration", "Problem", "SOLVERS", "Settings", "Solution", "calibrate", "choose_estimated", "compiled_solver",
-           "drop_unclosed", "jacobian", "make_problem", "make_solver", "registered_frame", "residuals", "rigid_registration",
+           "drop_unclosed", "frames_estimated", "jacobian", "make_problem", "make_solver", "registered_frame", "residuals", "rigid_registration",
            "similarity_registration", "solve", "solve_batch", "stacked", "start", "weighted_residuals", "x_scale"]
