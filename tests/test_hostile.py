@@ -532,9 +532,21 @@ csv_field = st.one_of(st.sampled_from(TOKENS), st.floats(allow_nan=True).map(rep
 csv_line = st.lists(csv_field, max_size=8).map(",".join)
 
 
-@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(lines=st.lists(csv_line, max_size=8), eol=st.sampled_from(["\n", "\r\n", "\r"]), tail=st.binary(max_size=6),
-       joints=st.sampled_from([None, ("j1", "j2"), ("j1", "j2", "j3")]))
+@st.composite
+def mutated_csv_lines(draw):
+    """A valid MRR-1 CSV (1-6 rows) with 0-3 fields replaced by hostile tokens: often still valid."""
+    lines = csv_text(mrr1_rows(draw(st.integers(1, 6)), seed=draw(st.integers(0, 9)))).splitlines()
+    for _ in range(draw(st.integers(0, 3))):
+        i = draw(st.integers(0, len(lines) - 1))
+        fields = lines[i].split(",")
+        fields[draw(st.integers(0, len(fields) - 1))] = draw(csv_field)
+        lines[i] = ",".join(fields)
+    return lines
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(lines=st.one_of(st.lists(csv_line, max_size=8), mutated_csv_lines()), eol=st.sampled_from(["\n", "\r\n", "\r"]),
+       tail=st.one_of(st.just(b""), st.binary(max_size=6)), joints=st.sampled_from([None, ("j1", "j2"), ("j1", "j2", "j3")]))
 def test_fuzz_csv_reader(tmp_path_factory, lines, eol, tail, joints):
     path = tmp_path_factory.mktemp("fuzz") / "f.csv"
     path.write_bytes(eol.join(lines).encode("utf-8", "surrogatepass") + tail)
@@ -571,8 +583,24 @@ def urdf_text(draw):
     return text
 
 
+@st.composite
+def mutated_urdf(draw):
+    """The valid two-joint URDF with 0-3 attribute values replaced from the pools above: often still valid."""
+    text = URDF
+    slots = ['xyz="0 0 0.2"', 'xyz="0.3 0 0"', 'xyz="0 0 1"', 'xyz="0 1 0"', 'lower="-3"', 'upper="2"', 'type="revolute"',
+             'link name="l1"', 'parent link="l1"', 'child link="tool"']
+    for _ in range(draw(st.integers(0, 3))):
+        slot = draw(st.sampled_from(slots))
+        key = slot.split("=")[0]
+        value = draw(st.one_of(st.sampled_from(NUMBERS + NAMES + ["continuous", "prismatic", "fixed", "ball", "-1e9", "0"]),
+                               st.text(alphabet="0123456789 .-enaif", max_size=8)))
+        text = text.replace(slot, f'{key}="{value}"', 1)
+    return text
+
+
 @settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(text=urdf_text(), base=st.sampled_from([None, "base", "l1"]), tip=st.sampled_from([None, "tool", "l2"]))
+@given(text=st.one_of(urdf_text(), mutated_urdf()), base=st.sampled_from([None, "base", "l1"]),
+       tip=st.sampled_from([None, "tool", "l2"]))
 def test_fuzz_urdf_reader(text, base, tip):
     try:
         robot = robot_from_urdf(text, base=base, tip=tip, source="fuzz.urdf")
