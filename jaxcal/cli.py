@@ -1,23 +1,28 @@
 """Command line: `jaxcal calibrate | identifiable | simulate | diagnose | bench | demo` (docs/cli.md).
 
 Every subcommand is a function of parsed arguments returning an exit code; bad input (robot
-file, CSV, config) prints one `error:` line naming the file/line/field and returns 2. Outputs
-go to files written atomically, never over an input.
+file, CSV, config, options, an unusable output path, any OS error on them) prints one `error:` line
+naming the file/line/field and returns 2, never a traceback; output paths are checked before any
+work. Outputs go to files written atomically, never over an input; `calibrate` replaces its output
+folder as a set and removes its staging folder on SIGTERM (exit 143).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import sys
 import time
+import warnings
 
 from jaxcal._setup import enable_compilation_cache
 from jaxcal.fit.core import SOLVERS
 from jaxcal.fit.csvfile import prismatic_joints
 
 EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130
 
 
 def _console():
@@ -58,7 +63,8 @@ def load_robot_arg(spec: str, base=None, tip=None):
 
 
 def _input_errors():
-    """Exception types that mean bad input (reported as one line, exit code 2)."""
+    """Exception types that mean bad input (reported as one line, exit code 2): the library's own input
+    errors, OS errors on the files (missing, unreadable, a folder, disk full) and undecodable text."""
     import yaml
 
     from jaxcal.config import ConfigError
@@ -66,13 +72,33 @@ def _input_errors():
     from jaxcal.io_atomic import OutputError
     from jaxcal.robots.io import RobotFileError
 
-    return (ConfigError, DataError, OutputError, RobotFileError, FileNotFoundError, KeyError, yaml.YAMLError)
+    return (ConfigError, DataError, OutputError, RobotFileError, OSError, KeyError, UnicodeError, yaml.YAMLError)
+
+
+def one_line(text) -> str:
+    """A message as one printable line: newlines, NUL and other control characters escaped."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(text))
+
+
+def _say(kind: str, style: str, text) -> None:
+    from rich.markup import escape
+
+    _console().print(f"[{style}]{kind}:[/] {escape(one_line(text))}", highlight=False, markup=True, soft_wrap=True)
 
 
 def _fail(exc) -> int:
-    msg = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-    _console().print(f"[bold red]error:[/] {msg}", highlight=False, markup=True, soft_wrap=True)  # one line: paths stay whole
+    """Print one `error:` line for an input error and return exit code 2."""
+    msg = str(exc)
+    if type(exc).__str__ is KeyError.__str__ and exc.args:  # a plain KeyError quotes its message
+        msg = str(exc.args[0])
+    if isinstance(exc, OSError) and exc.filename is not None:
+        msg = f"{exc.filename}: {exc.strerror or msg}"
+    _say("error", "bold red", msg)  # one line: paths stay whole
     return EXIT_BAD_INPUT
+
+
+def _warn(text) -> None:
+    _say("warning", "bold yellow", text)
 
 
 # -- calibrate ---------------------------------------------------------------------------------------
@@ -82,6 +108,18 @@ JOB_KEYS = ("robot", "data", "base", "tip", "out", "device", "marker", "joints",
             "seed", "solver", "free", "known", "sigma_position", "sigma_orientation", "max_steps")
 
 
+def check_options(given: dict) -> None:
+    """Command-line values checked as the job file's (`jaxcal.config.SCHEMA`); errors name the option."""
+    from jaxcal.config import SCHEMA, ConfigError
+    from jaxcal.names import duplicates
+
+    for key, value in given.items():
+        if key in SCHEMA and not SCHEMA[key][0](value):
+            raise ConfigError(f"--{key.replace('_', '-')} must be {SCHEMA[key][1]}, got {value!r}")
+        if key in ("free", "known") and duplicates(value):
+            raise ConfigError(f"--{key}: {duplicates(value)[0]!r} given twice")
+
+
 def job_options(args) -> dict:
     """Defaults, then the config file, then the command-line options (which win)."""
     from jaxcal.config import ConfigError, load_config
@@ -89,10 +127,9 @@ def job_options(args) -> dict:
     job = dict(DEFAULTS)
     if args.config:
         job.update(load_config(args.config))
-    for key in JOB_KEYS:
-        v = getattr(args, key, None)
-        if v is not None:
-            job[key] = v
+    given = {key: getattr(args, key) for key in JOB_KEYS if getattr(args, key, None) is not None}
+    check_options(given)
+    job.update(given)
     for key in ("robot", "data"):
         if not job.get(key):
             raise ConfigError(f"calibrate: no {key} given (argument or '{key}:' in the config file)")
@@ -101,32 +138,81 @@ def job_options(args) -> dict:
     return job
 
 
-def _calibrate(args) -> int:
+OUTPUTS = ("results.json", "report.md", "report.html", "errors_per_pose.png", "error_map.png", "convergence.png")
+
+
+def load_job_data(job, robot):
+    """The job's dataset, checked against the robot (joint columns, units against its limits); returns
+    (data, warnings): the data warnings (unit doubts, constant joint columns) as strings."""
     import jaxcal as jc
-    from jaxcal.io_atomic import check_not_input
+    from jaxcal.fit.csvfile import DataWarning, constant_columns, joint_limits
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DataWarning)
+        data = jc.Dataset.from_csv(job["data"], joints=job.get("joints") or robot.joint_names, device=job.get("device"),
+                                   marker=job.get("marker"), length_unit=job.get("length_unit"),
+                                   angle_unit=job.get("angle_unit"), prismatic=prismatic_joints(robot),
+                                   limits=joint_limits(robot))
+    found = [str(w.message) for w in caught if issubclass(w.category, DataWarning)]
+    for name in constant_columns(data.q, list(data.joint_names or robot.joint_names)):
+        found.append(f"{data.source}: joint column {name!r} has the same value in every sample: the data cannot identify "
+                     "its offset (it stays at its nominal value)")
+    return data, found
+
+
+def check_enough_samples(data, holdout: float) -> None:
+    """Refuse, before the fit, a training split with fewer residuals than the device's unknowns (frame and marker)
+    or fewer than 3 samples (the device frame needs 3 points off one line)."""
+    from jaxcal.fit.data import DataError
+
+    n_train = int(round((1.0 - holdout) * len(data))) if holdout > 0 else len(data)
+    per_sample = {"point": 3, "frame": 6}.get(data.device.marker_reading, int(math.prod(data.device.reading_shape)))
+    n_dev = int(sum(data.device.free_mask))
+    if n_train < 3 or n_train * per_sample <= n_dev:
+        raise DataError(f"{data.source}: {len(data)} sample(s), {n_train} for the fit after holding out {holdout:g}: "
+                        f"too few to fit the {n_dev} device frame/marker parameters and the robot; give more samples "
+                        "(tens) or --holdout 0")
+
+
+def check_known(known, device) -> None:
+    """Every --known entry names device parameters (a name or a prefix such as `dev`, `tool`); else the closest names."""
+    from jaxcal.names import UnknownNameError, suggestion
+
+    prefixes = sorted({n.rsplit(".", k)[0] for n in device.names for k in range(1, n.count(".") + 1)} | set(device.names))
+    for k in known:
+        if not any(n == k or n.startswith(k + ".") for n in device.names):
+            raise UnknownNameError(f"--known / known: {k!r} names no device parameter{suggestion(k, prefixes)}")
+
+
+def _calibrate(args) -> int:
+    from jaxcal.io_atomic import check_not_input, check_output_dir, cleanup_on_signals
     from jaxcal.report.job import heldout_verdict, run_job, write_job
     from jaxcal.robots.io import save_robot
 
     try:
         job = job_options(args)
         inputs = [job["robot"], job["data"], args.config]
+        out = job["out"]
+        for name in OUTPUTS:
+            check_not_input(os.path.join(out, name), inputs)
+        check_output_dir(out, inputs)  # before any work: a file, unwritable, or holding other files
         with _progress(not args.quiet) as prog:
             with _stage(prog, "loading robot and data"):
                 robot = load_robot_arg(job["robot"], job.get("base"), job.get("tip"))
-                data = jc.Dataset.from_csv(job["data"], joints=job.get("joints") or robot.joint_names, device=job.get("device"),
-                                           marker=job.get("marker"), length_unit=job.get("length_unit"),
-                                           angle_unit=job.get("angle_unit"), prismatic=prismatic_joints(robot))
+                data, data_warnings = load_job_data(job, robot)
             robot_file = calibrated_robot_file(robot)
-            out = job["out"]
-            outputs = ("results.json", "report.md", "report.html", "errors_per_pose.png", "error_map.png", "convergence.png")
-            for name in outputs + (robot_file,):
-                check_not_input(os.path.join(out, name), inputs)
+            check_not_input(os.path.join(out, robot_file), inputs)
+            check_known(job.get("known") or (), data.device)
+            free = expand_free(job.get("free"), robot)
+            check_enough_samples(data, job["holdout"])
+            for w in data_warnings:
+                _warn(w)
             with _stage(prog, f"identifying {robot.name} on {len(data)} samples (compiles the solver on first use)"):
-                res = run_job(robot, data, holdout=job["holdout"], seed=job["seed"], solver=job["solver"],
-                              free=expand_free(job.get("free"), robot),
+                res = run_job(robot, data, holdout=job["holdout"], seed=job["seed"], solver=job["solver"], free=free,
                               known=tuple(job.get("known") or ()), sigma_position=job["sigma_position"],
                               sigma_orientation=job["sigma_orientation"], max_steps=job["max_steps"])
-            with _stage(prog, f"writing the report to {out}"):
+            add_data_warnings(res.summary, data_warnings)
+            with _stage(prog, f"writing the report to {out}"), cleanup_on_signals():
                 write_job(out, res, lambda path: save_robot(robot, path, res.fit.a), robot_file)
     except _input_errors() as exc:
         return _fail(exc)
@@ -143,6 +229,14 @@ def _calibrate(args) -> int:
     return health_exit_code(res.summary["health"], args.accept_warnings)
 
 
+def add_data_warnings(summary: dict, found) -> None:
+    """The data checks' warnings join the job's health record (first in the report; exit 1 without --accept-warnings)."""
+    if found:
+        health = summary["health"]
+        health["warnings"] = list(found) + list(health["warnings"])
+        health["ok"] = False
+
+
 def health_exit_code(health: dict, accept_warnings: bool) -> int:
     """0 when the result is healthy (or its warnings are accepted), 1 when it carries warnings (docs/cli.md)."""
     if health["ok"]:
@@ -157,8 +251,10 @@ def health_exit_code(health: dict, accept_warnings: bool) -> int:
 
 def expand_free(patterns, robot):
     """Robot parameter names matching names or shell patterns (`*.offset`: joint offsets only);
-    a pattern that matches nothing is an error naming it."""
+    a pattern that matches nothing is an error naming it and the closest parameter names."""
     import fnmatch
+
+    from jaxcal.names import UnknownNameError, suggestion
 
     if patterns is None:
         return None
@@ -166,23 +262,28 @@ def expand_free(patterns, robot):
     for pat in patterns:
         hits = [n for n in robot.names if fnmatch.fnmatchcase(n, pat)]
         if not hits:
-            raise KeyError(f"--free / free: {pat!r} matches no parameter of {robot.name} (names look like {robot.names[0]!r})")
+            raise UnknownNameError(f"--free / free: {pat!r} matches no parameter of {robot.name}{suggestion(pat, robot.names)}")
         out += [n for n in hits if n not in out]
     return out
 
 
 def calibrated_robot_file(robot) -> str:
     """File name of the calibrated robot: URDF for robots that came from a URDF (a file or a
-    URDF-based built-in), else the seed-table YAML."""
-    return f"{robot.name}_calibrated.{robot.bodies[0].conv.file_format}"
+    URDF-based built-in), else the seed-table YAML. The robot's name comes from its file, so it passes
+    through `safe_filename` (no `/`, `..`, NUL or markup reaches the file system)."""
+    from jaxcal.io_atomic import safe_filename
+
+    return f"{safe_filename(robot.name)}_calibrated.{robot.bodies[0].conv.file_format}"
 
 
 # -- identifiable --------------------------------------------------------------------------------------
 def _identifiable(args) -> int:
     import jaxcal as jc
-    from jaxcal.io_atomic import write_json_atomic
+    from jaxcal.io_atomic import check_output_file, write_json_atomic
 
     try:
+        if args.json:
+            check_output_file(args.json, "--json file")
         robot = load_robot_arg(args.robot, args.base, args.tip)
         with _progress(not args.quiet) as prog, _stage(prog, f"observation matrix of {args.method} ({args.n} samples)"):
             res = jc.identifiable(robot, args.method, n_configs=args.n, seed=args.seed, include_gains=not args.no_gains)
@@ -209,9 +310,12 @@ def _simulate(args) -> int:
     import numpy as np
 
     import jaxcal as jc
-    from jaxcal.io_atomic import check_not_input, write_json_atomic
+    from jaxcal.io_atomic import check_not_input, check_output_file, write_json_atomic
 
     try:
+        check_output_file(args.out, "--out file")
+        if args.truth:
+            check_output_file(args.truth, "--truth file")
         robot = load_robot_arg(args.robot, args.base, args.tip)
         check_not_input(args.out, [args.robot])
         if args.truth:
@@ -235,7 +339,7 @@ def _simulate(args) -> int:
 # -- diagnose -----------------------------------------------------------------------------------------------
 def _diagnose(args) -> int:
     import jaxcal as jc
-    from jaxcal.io_atomic import check_not_input, write_json_atomic
+    from jaxcal.io_atomic import check_not_input, check_writable_dir, write_json_atomic
 
     try:
         import jaxcal.gap  # noqa: F401
@@ -244,6 +348,7 @@ def _diagnose(args) -> int:
                          f"which is not available in this installation ({exc})")
         return 1
     try:
+        check_writable_dir(args.out)
         robot = load_robot_arg(args.robot, args.base, args.tip)
         data = jc.Dataset.from_csv(args.data, joints=robot.joint_names, device=args.device, marker=args.marker,
                                    length_unit=args.length_unit, angle_unit=args.angle_unit, prismatic=prismatic_joints(robot))
@@ -251,12 +356,12 @@ def _diagnose(args) -> int:
         with _progress(not args.quiet) as prog, _stage(prog, f"diagnosing the sim-to-real gap of {robot.name}"):
             d = jc.gap.diagnose(robot, data, folds=args.folds, seed=args.seed, max_steps=args.max_steps)
             payload = d.to_dict()
+        print(d.report())
+        os.makedirs(args.out, exist_ok=True)
+        d.plot(args.out)
+        write_json_atomic(os.path.join(args.out, "diagnosis.json"), payload)
     except _input_errors() as exc:
         return _fail(exc)
-    print(d.report())
-    os.makedirs(args.out, exist_ok=True)
-    d.plot(args.out)
-    write_json_atomic(os.path.join(args.out, "diagnosis.json"), payload)
     return 0
 
 
@@ -264,9 +369,11 @@ def _diagnose(args) -> int:
 def _cv(args) -> int:
     import jaxcal as jc
     from jaxcal.fit.cv import cross_validate
-    from jaxcal.io_atomic import check_not_input, write_json_atomic
+    from jaxcal.io_atomic import check_not_input, check_output_file, write_json_atomic
 
     try:
+        if args.json:
+            check_output_file(args.json, "--json file")
         robot = load_robot_arg(args.robot, args.base, args.tip)
         data = jc.Dataset.from_csv(args.data, joints=robot.joint_names, device=args.device, marker=args.marker,
                                    length_unit=args.length_unit, angle_unit=args.angle_unit, prismatic=prismatic_joints(robot))
@@ -329,8 +436,10 @@ def _benchmarks_dir():
 def _bench(args) -> int:
     import runpy
 
-    from jaxcal.io_atomic import write_json_atomic
+    from jaxcal.io_atomic import check_output_file, write_json_atomic
 
+    if args.json:
+        check_output_file(args.json, "--json file")
     if args.script:
         path = os.path.join(_benchmarks_dir(), args.script if args.script.endswith(".py") else args.script + ".py")
         if not os.path.exists(path):
@@ -385,8 +494,39 @@ def _quiet(p):
     p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with the CLI's error format: one `error:` line on stderr, exit code 2."""
+
+    def error(self, message):
+        _say("error", "bold red", f"{self.prog}: {message} (see {self.prog} --help)")
+        raise SystemExit(EXIT_BAD_INPUT)
+
+
+def _number_type(kind, test, expected):
+    """An argparse type: `kind(text)` that must be finite and pass `test`, else a one-line error saying `expected`."""
+    def convert(text):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}") from None
+        if not math.isfinite(v) or not test(v):
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+        return v
+    convert.__name__ = expected
+    return convert
+
+
+positive_int = _number_type(int, lambda v: v > 0, "a positive integer")
+nonneg_int = _number_type(int, lambda v: v >= 0, "an integer >= 0")
+positive_float = _number_type(float, lambda v: v > 0, "a positive number")
+nonneg_float = _number_type(float, lambda v: v >= 0, "a number >= 0")
+finite_float = _number_type(float, lambda v: True, "a finite number")
+fraction = _number_type(float, lambda v: 0 <= v < 1, "a number in [0, 1)")
+folds_int = _number_type(int, lambda v: v >= 2, "an integer >= 2")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="jaxcal", description="Differentiable robot calibration in JAX.")
+    p = Parser(prog="jaxcal", description="Differentiable robot calibration in JAX.")
     p.add_argument("--cache", metavar="DIR", help="keep compiled XLA code in DIR across runs (off by default; "
                    "jax writes entries in place, so do not share DIR between concurrent runs)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
@@ -399,15 +539,15 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--tip", help="URDF: last link of the chain")
     c.add_argument("--out", help="output folder (default calib-output)")
     _data_args(c)
-    c.add_argument("--holdout", type=float, help="fraction of samples held out of the fit (default 0.25)")
+    c.add_argument("--holdout", type=fraction, help="fraction of samples held out of the fit (default 0.25)")
     c.add_argument("--seed", type=int, help="seed of the held-out split (default 0)")
     c.add_argument("--solver", choices=tuple(SOLVERS))
     c.add_argument("--free", nargs="+", help="robot parameters to estimate, names or patterns such as '*.offset' "
                    "(default: all free; the base set of them is identified)")
     c.add_argument("--known", nargs="+", help="device parameters (or prefixes dev, tool) taken as known")
-    c.add_argument("--sigma-position", dest="sigma_position", type=float, help="position noise in m (residual weight)")
-    c.add_argument("--sigma-orientation", dest="sigma_orientation", type=float, help="orientation noise in rad")
-    c.add_argument("--max-steps", dest="max_steps", type=int, help="solver step limit (default 200)")
+    c.add_argument("--sigma-position", dest="sigma_position", type=positive_float, help="position noise in m (residual weight)")
+    c.add_argument("--sigma-orientation", dest="sigma_orientation", type=positive_float, help="orientation noise in rad")
+    c.add_argument("--max-steps", dest="max_steps", type=positive_int, help="solver step limit (default 200)")
     c.add_argument("--accept-warnings", dest="accept_warnings", action="store_true",
                    help="exit 0 even when the result carries health warnings (default: exit 1)")
     _quiet(c)
@@ -417,7 +557,7 @@ def build_parser() -> argparse.ArgumentParser:
     _robot_args(i)
     i.add_argument("--method", default="position", help="position, location, point_link, frame_link, plane1_known, "
                    "plane1_unknown, plane2_known, plane2_unknown, distance (default position)")
-    i.add_argument("--n", type=int, default=60, help="number of generated samples (default 60)")
+    i.add_argument("--n", type=positive_int, default=60, help="number of generated samples (default 60)")
     i.add_argument("--seed", type=int, default=0)
     i.add_argument("--no-gains", action="store_true", help="do not identify transmission gains")
     i.add_argument("--json", help="also write the result as JSON here")
@@ -427,17 +567,20 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("simulate", help="write a CSV of simulated measurements of a perturbed robot")
     _robot_args(s)
     s.add_argument("--out", required=True, help="CSV file to write")
-    s.add_argument("--n", type=int, default=100, help="number of samples (default 100)")
+    s.add_argument("--n", type=positive_int, default=100, help="number of samples (default 100)")
     s.add_argument("--device", choices=("position", "pose"), default="position")
-    s.add_argument("--perturb-mm", dest="perturb_mm", type=float, default=1.0, help="std of the length errors (default 1 mm)")
-    s.add_argument("--perturb-mrad", dest="perturb_mrad", type=float, default=2.0, help="std of the angle errors (default 2 mrad)")
-    s.add_argument("--noise-mm", dest="noise_mm", type=float, default=0.02, help="measurement noise std (default 0.02 mm)")
-    s.add_argument("--noise-mrad", dest="noise_mrad", type=float, default=0.02, help="orientation noise std (default 0.02 mrad)")
+    s.add_argument("--perturb-mm", dest="perturb_mm", type=nonneg_float, default=1.0,
+                   help="std of the length errors (default 1 mm)")
+    s.add_argument("--perturb-mrad", dest="perturb_mrad", type=nonneg_float, default=2.0,
+                   help="std of the angle errors (default 2 mrad)")
+    s.add_argument("--noise-mm", dest="noise_mm", type=nonneg_float, default=0.02, help="measurement noise std (default 0.02 mm)")
+    s.add_argument("--noise-mrad", dest="noise_mrad", type=nonneg_float, default=0.02,
+                   help="orientation noise std (default 0.02 mrad)")
     s.add_argument("--length-unit", dest="length_unit", choices=("m", "mm"), default="m")
     s.add_argument("--angle-unit", dest="angle_unit", choices=("rad", "deg"), default="rad")
     s.add_argument("--temperature", action="store_true", help="add a temperature covariate column")
     s.add_argument("--truth", help="also write the true parameters as JSON here")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=nonneg_int, default=0)
     s.set_defaults(func=_simulate)
 
     d = sub.add_parser("diagnose", help="diagnose the sim-to-real gap left after calibration (jaxcal.gap)")
@@ -445,9 +588,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("data", help="measurement CSV")
     d.add_argument("--out", default="diagnosis-output", help="output folder (default diagnosis-output)")
     _data_args(d)
-    d.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
+    d.add_argument("--folds", type=folds_int, default=5, help="cross-validation folds (default 5)")
     d.add_argument("--seed", type=int, default=0, help="seed of the fold split (default 0)")
-    d.add_argument("--max-steps", dest="max_steps", type=int, default=200, help="solver step limit (default 200)")
+    d.add_argument("--max-steps", dest="max_steps", type=positive_int, default=200, help="solver step limit (default 200)")
     _quiet(d)
     d.set_defaults(func=_diagnose)
 
@@ -455,11 +598,11 @@ def build_parser() -> argparse.ArgumentParser:
     _robot_args(v)
     v.add_argument("data", help="measurement CSV")
     _data_args(v)
-    v.add_argument("--folds", type=int, default=5, help="folds (default 5; repeated poses stay in one fold)")
+    v.add_argument("--folds", type=folds_int, default=5, help="folds (default 5; repeated poses stay in one fold)")
     v.add_argument("--seed", type=int, default=0, help="seed of the fold split (default 0)")
-    v.add_argument("--sigma-position", dest="sigma_position", type=float, default=1e-3, help="position noise in m")
-    v.add_argument("--sigma-orientation", dest="sigma_orientation", type=float, default=1e-3, help="orientation noise in rad")
-    v.add_argument("--max-steps", dest="max_steps", type=int, default=200, help="solver step limit (default 200)")
+    v.add_argument("--sigma-position", dest="sigma_position", type=positive_float, default=1e-3, help="position noise in m")
+    v.add_argument("--sigma-orientation", dest="sigma_orientation", type=positive_float, default=1e-3, help="orientation noise in rad")
+    v.add_argument("--max-steps", dest="max_steps", type=positive_int, default=200, help="solver step limit (default 200)")
     v.add_argument("--json", help="write the per-fold results as JSON here")
     v.add_argument("--accept-warnings", dest="accept_warnings", action="store_true",
                    help="exit 0 even when a fold's fit carries health warnings (default: exit 1)")
@@ -470,9 +613,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--script", help="benchmark script in benchmarks/ (fk, identify, ga, ...); arguments after --")
     b.add_argument("script_args", nargs="*", help="arguments passed to the script")
     b.add_argument("--robot", default="stanford")
-    b.add_argument("--n-fk", dest="n_fk", type=int, default=10000)
-    b.add_argument("--n-fit", dest="n_fit", type=int, default=100)
-    b.add_argument("--repeats", type=int, default=5)
+    b.add_argument("--n-fk", dest="n_fk", type=positive_int, default=10000)
+    b.add_argument("--n-fit", dest="n_fit", type=positive_int, default=100)
+    b.add_argument("--repeats", type=positive_int, default=5)
     b.add_argument("--json", help="also write the timings as JSON here")
     _quiet(b)
     b.set_defaults(func=_bench)
@@ -484,14 +627,27 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    """Run one command; exit codes 0 (ok), 1 (health warnings), 2 (bad input or an OS error on a file: one
+    `error:` line), 130 (Ctrl-C), 143 (SIGTERM while writing; the staging folder is removed)."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # a bad option: one `error:` line printed, exit code 2 returned (--help still exits)
+        if not exc.code:
+            raise
+        return int(exc.code) if isinstance(exc.code, int) else EXIT_BAD_INPUT
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
-    if args.cache:
-        enable_compilation_cache(args.cache)
-    return args.func(args)
+    try:
+        if args.cache:
+            enable_compilation_cache(args.cache)
+        return args.func(args)
+    except _input_errors() as exc:  # anything a subcommand did not catch itself
+        return _fail(exc)
+    except KeyboardInterrupt:
+        _say("error", "bold red", "interrupted")
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -17,7 +17,8 @@
     sigma_orientation: 1.0e-3  # rad
     max_steps: 200
 
-Errors name the file and the key.
+Errors name the file and the key: unknown keys (with the closest known key), keys given twice (YAML;
+TOML refuses them itself), names given twice in `joints`, `free` or `known`, wrong values.
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ import tomllib
 import yaml
 
 from jaxcal.fit.core import SOLVERS
+from jaxcal.names import duplicates, suggestion
+from jaxcal.yamlfile import load_yaml
 
 
 class ConfigError(ValueError):
@@ -39,7 +42,8 @@ def _string(v):
 
 
 def _number(v):
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
+    """A finite int or float (not a bool, NaN or inf)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and v == v and abs(v) != float("inf")
 
 
 def _string_list(v):
@@ -71,15 +75,19 @@ UNITS = {"length": ("m", "mm"), "angle": ("rad", "deg")}
 
 
 def _parse(path: str) -> dict:
-    with open(path, "rb") as fh:
-        raw = fh.read()
+    try:
+        with open(path, "rb") as fh:
+            raw = fh.read()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read ({exc.strerror or exc})") from None
     try:
         if path.lower().endswith(".toml"):
-            doc = tomllib.loads(raw.decode())
+            doc = tomllib.loads(raw.decode("utf-8-sig"))
         else:
-            doc = yaml.safe_load(raw)
+            doc = load_yaml(raw)
     except (tomllib.TOMLDecodeError, yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: not valid {'TOML' if path.lower().endswith('.toml') else 'YAML'}: {exc}") from None
+        kind = "TOML" if path.lower().endswith(".toml") else "YAML"
+        raise ConfigError(f"{path}: not valid {kind}: {' '.join(str(exc).split())}") from None
     if doc is None:
         return {}
     if not isinstance(doc, dict):
@@ -92,10 +100,12 @@ def validate(doc: dict, path: str = "<config>") -> dict:
     out = {}
     for key, value in doc.items():
         if key not in SCHEMA:
-            raise ConfigError(f"{path}: unknown key {key!r}; known keys: {', '.join(SCHEMA)}")
+            raise ConfigError(f"{path}: unknown key {key!r}{suggestion(str(key), SCHEMA)}; known keys: {', '.join(SCHEMA)}")
         check, expected = SCHEMA[key]
         if not check(value):
             raise ConfigError(f"{path}: key {key!r} must be {expected}, got {value!r}")
+        if key in ("joints", "free", "known") and duplicates(value):
+            raise ConfigError(f"{path}: key {key!r}: {duplicates(value)[0]!r} given twice")
         if key == "units":
             for kind, unit in value.items():
                 if kind not in UNITS or unit not in UNITS[kind]:

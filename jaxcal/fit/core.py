@@ -42,6 +42,7 @@ from jaxcal.forward import forward
 from jaxcal.kin.model import Robot
 from jaxcal.kin.rotations import log_so3
 from jaxcal.measure.devices import Device
+from jaxcal.names import check_names
 
 # The one name -> solver map (CLI, job files, `identify(solver=...)`); an optimistix solver object works too.
 SOLVERS = {
@@ -248,9 +249,8 @@ def make_problem(robot: Robot, device: Device, q, y, *, weights, free, a_ref, bo
         w = sw[:, None] * w
     names = tuple(robot.names) + tuple(device.names)
     lb, ub = np.full(len(names), -np.inf), np.full(len(names), np.inf)
+    check_names(list(bounds or {}), names, "bounds: parameter")  # UnknownNameError (a KeyError), closest names named
     for n, (lo, hi) in (bounds or {}).items():
-        if n not in names:
-            raise KeyError(f"bounds: unknown parameter {n!r}")
         lb[names.index(n)], ub[names.index(n)] = lo, hi
     return Problem(robot, device, q, y, w, np.asarray(free, bool), np.asarray(a_ref, float), lb, ub)
 

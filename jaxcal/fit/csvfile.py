@@ -12,6 +12,8 @@ Layout (see docs/file-formats.md): one header row, one row per sample.
 Units: lines starting with `#` before the header may say `# units: length=mm, angle=deg` and
 `# prismatic: j3` (joint columns that are lengths); arguments give them otherwise; default m and
 rad. Orientation angles use the angle unit.
+Text: UTF-8 (a byte-order mark is skipped), any line ending; other bytes, NUL bytes and broken
+quoting are errors naming the line.
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ _PRISMATIC = re.compile(r"^#\s*prismatic\s*:\s*(.*)$", re.IGNORECASE)
 MAX_POSITION_M = 20.0  # |p| beyond this in metres is taken for millimetres given as metres
 MIN_POSITION_MM = 5.0  # every |p| below this in millimetres looks like metres given as millimetres
 MAX_ANGLE_RAD = 2 * np.pi + 0.5  # |q| beyond this in radians is taken for degrees given as radians
+MAX_PRISMATIC_M = 20.0  # a prismatic joint reading beyond this in metres is taken for millimetres given as metres
+LIMIT_FACTOR = 3.0  # readings this many times beyond the robot's limits that fit them in the other unit: a unit mistake
 
 
 def prismatic_joints(robot) -> tuple[str, ...]:
@@ -49,11 +53,21 @@ def prismatic_joints(robot) -> tuple[str, ...]:
     return tuple(out)
 
 
+def joint_limits(robot) -> dict:
+    """{joint name: (lower, upper)} of the robot's joint inputs with finite limits (SI: rad, m)."""
+    lo, hi = np.asarray(robot.q_min, float), np.asarray(robot.q_max, float)
+    return {n: (float(a), float(b)) for n, a, b in zip(robot.joint_names, lo, hi) if np.isfinite(a) and np.isfinite(b) and a < b}
+
+
 class DataError(ValueError):
     """Bad input data; the message names the file, row, column or sample."""
 
 
-class UnitWarning(UserWarning):
+class DataWarning(UserWarning):
+    """Data that can be used but probably not as intended (a constant joint column, a unit that looks wrong)."""
+
+
+class UnitWarning(DataWarning):
     """Values that look like they are in another unit than the one stated (possible but unlikely)."""
 
 
@@ -83,6 +97,41 @@ def _header_units(comment: str, path: str, lineno: int) -> dict:
     return out
 
 
+def decode_text(raw: bytes, path: str) -> str:
+    """The text of a file's bytes: UTF-8 with an optional byte-order mark; other bytes and NUL bytes
+    are a DataError naming the line."""
+    nul = raw.find(b"\x00")
+    if nul >= 0:
+        line = raw.count(b"\n", 0, nul) + 1
+        raise DataError(f"{path}, line {line}: NUL byte in the file: not a text CSV file")
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise DataError(f"{path}, line {line}: not UTF-8 text (byte 0x{raw[exc.start]:02x}); save the file as UTF-8") from None
+
+
+def read_text(path: str) -> str:
+    """A text file's content (see `decode_text`); a missing or unreadable file is a DataError."""
+    if not os.path.exists(path):
+        raise DataError(f"{path}: no such file")
+    try:
+        with open(path, "rb") as fh:
+            raw = fh.read()
+    except OSError as exc:
+        raise DataError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    return decode_text(raw, path)
+
+
+def _fields(line: str, delimiter: str, path: str, lineno: int) -> list[str]:
+    """The stripped fields of one CSV line; broken quoting is a DataError naming the line."""
+    try:
+        rows = list(csv.reader([line], delimiter=delimiter, strict=True))
+    except csv.Error as exc:
+        raise DataError(f"{path}, line {lineno}: not a CSV row ({exc})") from None
+    return [f.strip() for f in (rows[0] if rows else [])]
+
+
 def read_table(path: str, delimiter: str = ",", needed=None, header_only: bool = False) -> Table:
     """All rows as numbers. Errors name the file, the 1-based line and the column.
 
@@ -90,10 +139,7 @@ def read_table(path: str, delimiter: str = ",", needed=None, header_only: bool =
     header_only: stop after the header (values empty), to check the columns before the rows.
     """
     path = str(path)
-    if not os.path.exists(path):
-        raise DataError(f"{path}: no such file")
-    with open(path, newline="") as fh:
-        text_lines = fh.read().splitlines()
+    text_lines = read_text(path).splitlines()
     units, header, header_line = {}, None, 0
     rows, lines = [], []
     for lineno, line in enumerate(text_lines, start=1):
@@ -104,7 +150,7 @@ def read_table(path: str, delimiter: str = ",", needed=None, header_only: bool =
             if header is None:
                 units.update(_header_units(stripped, path, lineno))
             continue
-        fields = [f.strip() for f in next(csv.reader([line], delimiter=delimiter))]
+        fields = _fields(line, delimiter, path, lineno)
         if header is None:
             header, header_line = fields, lineno
             dup = sorted({h for h in header if header.count(h) > 1})
@@ -221,7 +267,11 @@ def find_layout(header, path, joints=None, position_columns=None, marker=None, c
     need = list(joints) + position + ocols + list(cov.values())
     missing = [c for c in need if c not in header]
     if missing:
-        raise DataError(f"{path}: missing column(s) {missing}; header has {header}")
+        from jaxcal.names import closest
+
+        near = {m: closest(m, [h for h in header if h not in need], n=1) for m in missing}
+        hint = "; ".join(f"{m!r} misspelt as {near[m][0]!r}?" for m in missing if near[m])
+        raise DataError(f"{path}: missing column(s) {missing}; header has {header}" + (f" ({hint})" if hint else ""))
     return Layout(list(joints), position, kind, ocols, cov, markers)
 
 
@@ -287,6 +337,51 @@ def check_joint_units(q, joints, lines, angle_unit, path, prismatic=()):
                       UnitWarning, stacklevel=3)
 
 
+def check_prismatic_units(q, joints, lines, length_unit, path, prismatic=()):
+    """Prismatic joint readings in metres beyond 20 m: millimetres given as metres (an error naming the column and line)."""
+    for j, name in enumerate(joints):
+        if name not in prismatic or length_unit != "m" or not len(q):
+            continue
+        col = np.abs(q[:, j])
+        if col.max() > MAX_PRISMATIC_M:
+            i = int(np.argmax(col))
+            raise DataError(f"{path}, line {lines[i]}, column {name!r}: prismatic joint reading {q[i, j]:.6g} m: "
+                            "millimetres given as metres? state the unit with length_unit='mm' or a '# units: length=mm' header line")
+
+
+def check_limit_units(q_si, joints, lines, path, limits, prismatic=()):
+    """Readings (SI) far beyond the robot's joint limits that would fit them in the other unit (degrees read as
+    radians: 57.3x; millimetres read as metres: 1000x) are an error naming the column and line.
+
+    A column is refused when its largest excess over the limits is more than `LIMIT_FACTOR` times the limit's
+    magnitude and every reading divided by the unit factor lies within the limits (10% margin); a small overshoot
+    is left to the fit's health record (joint readings outside the limits)."""
+    for j, name in enumerate(joints):
+        if name not in limits or not len(q_si):
+            continue
+        lo, hi = limits[name]
+        col = q_si[:, j]
+        size = max(abs(lo), abs(hi))
+        if np.abs(col).max() <= LIMIT_FACTOR * size:
+            continue
+        factor, unit = (1e3, "millimetres given as metres") if name in prismatic else (180.0 / np.pi, "degrees given as radians")
+        margin = 0.1 * (hi - lo)
+        scaled = col / factor
+        if np.all((scaled >= lo - margin) & (scaled <= hi + margin)):
+            i = int(np.argmax(np.abs(col)))
+            si = "m" if name in prismatic else "rad"
+            raise DataError(f"{path}, line {lines[i]}, column {name!r}: reading {col[i]:.6g} {si} is "
+                            f"{np.abs(col[i]) / size:.3g} times the joint limit [{lo:.4g}, {hi:.4g}] {si}, and every reading "
+                            f"of the column fits the limits divided by {factor:.4g}: {unit}? state the unit")
+
+
+def constant_columns(q, joints) -> list[str]:
+    """Joint columns whose readings are all equal (their offsets cannot be identified); none for one sample."""
+    if len(q) < 2:
+        return []
+    return [name for j, name in enumerate(joints) if np.ptp(q[:, j]) == 0]
+
+
 def check_length_units(p_si, lines, length_unit, path):
     """Millimetres given as metres (|p| > 20 m): an error; metres given as millimetres (every
     |p| < 5 mm): a warning."""
@@ -300,5 +395,6 @@ def check_length_units(p_si, lines, length_unit, path):
                       "unit is mm: metres given as millimetres?", UnitWarning, stacklevel=3)
 
 
-__all__ = ["DataError", "Layout", "Table", "UnitWarning", "find_layout", "joint_scale", "prismatic_joints", "read_table",
-           "resolve_unit"]
+__all__ = ["DataError", "DataWarning", "Layout", "Table", "UnitWarning", "check_limit_units", "check_prismatic_units",
+           "constant_columns", "decode_text", "find_layout", "joint_limits", "joint_scale", "prismatic_joints", "read_table",
+           "read_text", "resolve_unit"]

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxcal.fit.csvfile import DataError, UnitWarning  # noqa: F401  (re-exported)
+from jaxcal.fit.csvfile import DataError, DataWarning, UnitWarning  # noqa: F401  (re-exported)
 from jaxcal.measure import Device, as_device, device_class, make_device
 
 
@@ -73,7 +73,7 @@ class Dataset:
 
     @classmethod
     def from_csv(cls, path, joints=None, device=None, position_columns=None, length_unit=None, angle_unit=None,
-                 covariates=(), delimiter=",", marker=None, check_units=True, prismatic=()):
+                 covariates=(), delimiter=",", marker=None, check_units=True, prismatic=(), limits=None):
         """Read a measurement CSV (layout in `jaxcal.fit.csvfile` and docs/file-formats.md).
 
         joints: the joint columns in the order of q (default: every column that is not a
@@ -85,6 +85,8 @@ class Dataset:
         prismatic: joint columns that are lengths (in the length unit), added to those of a `# prismatic:`
         header line; `csvfile.prismatic_joints(robot)` lists a robot's.
         check_units: raise (or warn) on values that look like another unit (see `csvfile.check_*_units`).
+        limits: {joint: (lower, upper)} in SI (`csvfile.joint_limits(robot)`); a column far beyond them that fits them
+        in the other unit (57.3x for degrees read as radians, 1000x for millimetres) is an error.
         Errors name the file, the 1-based line and the column.
         """
         from jaxcal.fit import csvfile as cf
@@ -99,7 +101,7 @@ class Dataset:
         reading = None if dev_class is None else dev_class.marker_reading
         if reading == "points":
             return cls._multi_marker_csv(path, head.header, device, joints, marker, length_unit, angle_unit, covariates,
-                                         delimiter, check_units, prismatic)
+                                         delimiter, check_units, prismatic, limits)
         lay = cf.find_layout(head.header, path, joints, position_columns, marker, covariates, orientation=reading != "point")
         if reading == "frame" and lay.orientation is None:
             raise DataError(f"{path}: device {dev_class.kind!r} needs orientation columns "
@@ -114,10 +116,12 @@ class Dataset:
         col = {h: i for i, h in enumerate(tab.header)}
         block = lambda names: tab.values[:, [col[c] for c in names]]  # noqa: E731
         q_raw, p = block(lay.joints), block(lay.position) * cf.LENGTH_SCALE[length]
+        q = q_raw * cf.joint_scale(lay.joints, prismatic, length, angle)
         if check_units:
             cf.check_joint_units(q_raw, lay.joints, tab.lines, angle, path, prismatic)
+            cf.check_prismatic_units(q_raw, lay.joints, tab.lines, length, path, prismatic)
+            cf.check_limit_units(q, lay.joints, tab.lines, path, limits or {}, prismatic)
             cf.check_length_units(p, tab.lines, length, path)
-        q = q_raw * cf.joint_scale(lay.joints, prismatic, length, angle)
         cov = {name: tab.values[:, col[c]] for name, c in lay.covariates.items()}
         if lay.orientation is not None:
             R = cf.rotations_from_columns(lay.orientation, block(lay.orientation_columns), tab.lines, path, cf.ANGLE_SCALE[angle])
@@ -129,7 +133,7 @@ class Dataset:
 
     @classmethod
     def _multi_marker_csv(cls, path, header, device, joints, markers, length_unit, angle_unit, covariates, delimiter,
-                          check_units, prismatic):
+                          check_units, prismatic, limits=None):
         """`from_csv` for a multi-marker position device: the columns x_k, y_k, z_k of each marker k in `markers`
         (default every marker with all three columns), readings (N, K, 3)."""
         from jaxcal.fit import csvfile as cf
@@ -149,11 +153,13 @@ class Dataset:
         col = {h: i for i, h in enumerate(tab.header)}
         q_raw = tab.values[:, [col[c] for c in lay.joints]]
         p = tab.values[:, [col[c] for c in position]].reshape(len(q_raw), len(markers), 3) * cf.LENGTH_SCALE[length]
+        q = q_raw * cf.joint_scale(lay.joints, prismatic, length, angle)
         if check_units:
             cf.check_joint_units(q_raw, lay.joints, tab.lines, angle, path, prismatic)
+            cf.check_prismatic_units(q_raw, lay.joints, tab.lines, length, path, prismatic)
+            cf.check_limit_units(q, lay.joints, tab.lines, path, limits or {}, prismatic)
             for k in range(len(markers)):
                 cf.check_length_units(p[:, k], tab.lines, length, path)
-        q = q_raw * cf.joint_scale(lay.joints, prismatic, length, angle)
         dev = device if isinstance(device, Device) else make_device("multi_position", points=len(markers))
         if dev.reading_shape != (len(markers), 3):
             raise DataError(f"{path}: device has {dev.reading_shape[0]} marker points, the file gives markers {markers}")

@@ -25,6 +25,7 @@ from jaxcal.fit.health import Health, assess
 from jaxcal.forward import forward
 from jaxcal.kin.model import Robot
 from jaxcal.measure.devices import Device
+from jaxcal.names import check_names
 
 SOLVERS = tuple(core.SOLVERS)
 residuals = core.residuals
@@ -175,9 +176,7 @@ def _select(names, full_names, default_mask):
     if names is None:
         return np.asarray(default_mask, bool)
     names = list(names)
-    unknown = [n for n in names if n not in full_names]
-    if unknown:
-        raise KeyError(f"unknown parameter name(s) {unknown}")
+    check_names(names, full_names, "free: parameter")  # UnknownNameError (a KeyError) naming the closest names
     return np.isin(np.array(full_names), names)
 
 

@@ -1,16 +1,19 @@
 """The calibration job behind `jaxcal calibrate`: fit on a training split, check on held-out data,
 and one Markdown + PNG report (and the same as HTML) with the numbers a reviewer asks for.
 
-`run_job` computes everything in memory; `write_job` writes the files, each atomically, only after
-every computation succeeded (so a failure leaves no partial output).
+`run_job` computes everything in memory; `write_job` writes the files into a hidden staging folder
+and swaps it in as the output folder only after every file exists (so a failure leaves no partial
+output, and no stale file of an earlier run survives). Every string that comes from an input (robot,
+parameter and column names, paths, warnings) is escaped in the Markdown, and the HTML renderer passes
+no raw HTML through, so a name such as `<img onerror=...>` is shown as text.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import html
 import os
-import shutil
-import tempfile
+import re
 
 import matplotlib
 
@@ -20,8 +23,8 @@ import numpy as np  # noqa: E402
 
 from jaxcal.fit.core import x_scale  # noqa: E402
 from jaxcal.fit.identify import identify  # noqa: E402
-from jaxcal.io_atomic import write_json_atomic, write_text_atomic  # noqa: E402
-from jaxcal.report.plots import plot_convergence, save_atomic  # noqa: E402
+from jaxcal.io_atomic import replace_folder, write_json_atomic, write_text_atomic  # noqa: E402
+from jaxcal.report.plots import plain_text, plot_convergence, save_atomic  # noqa: E402
 
 
 @dataclasses.dataclass
@@ -131,7 +134,7 @@ def plot_errors_per_pose(summary, path):
         ax.set_title(f"{'training' if split == 'train' else 'held-out'} samples ({len(b)})")
         ax.legend(fontsize=9, loc="upper right")
         ax.grid(True, axis="y", which="both", alpha=0.3)
-    fig.suptitle(f"{summary['robot']}: error per pose, nominal vs calibrated")
+    fig.suptitle(f"{plain_text(summary['robot'])}: error per pose, nominal vs calibrated")
     return save_atomic(fig, path)
 
 
@@ -164,11 +167,33 @@ def plot_error_map(job: JobResult, path):
         ax.set_aspect("equal", adjustable="box")
         ax.grid(True, alpha=0.3)
     axes[0].legend(fontsize=8, loc="best")
-    fig.suptitle(f"{job.summary['robot']}: position error over the workspace (circles training, triangles held-out)")
+    fig.suptitle(f"{plain_text(job.summary['robot'])}: position error over the workspace (circles training, triangles held-out)")
     return save_atomic(fig, path)
 
 
 # -- Markdown -------------------------------------------------------------------------------------
+_MD_SPECIAL = set("\\`*[]<>|&!")
+
+
+def _one_line(text) -> str:
+    """`text` as one line: control characters (newlines, NUL, escapes) become spaces."""
+    return "".join(" " if (ord(c) < 32 or ord(c) == 127) else c for c in str(text))
+
+
+def md_text(text) -> str:
+    """A string from an input (a name, a path, a warning) as literal Markdown text: one line, with the
+    characters that start HTML, links, images, code or table cells backslash-escaped."""
+    return "".join("\\" + c if c in _MD_SPECIAL else c for c in _one_line(text))
+
+
+def md_code(text) -> str:
+    """A string from an input as a Markdown code span, fenced by more backticks than it holds."""
+    text = _one_line(text)
+    fence = "`" * (max((len(m) for m in re.findall("`+", text)), default=0) + 1)
+    pad = " " if text.startswith("`") or text.endswith("`") else ""
+    return f"{fence}{pad}{text}{pad}{fence}"
+
+
 def _fmt(v, spec=".4g"):
     return "n/a" if v is None else format(v, spec)
 
@@ -210,9 +235,9 @@ def job_markdown(summary, images: dict, robot_file: str | None) -> str:
     health = summary["health"]
     status = ("**Health: ok.**" if health["ok"] else
               f"**Health: {len(health['warnings'])} warning(s); do not use this calibration before reading them.**")
-    warnings = [f"- {w}" for w in health["warnings"]] + ([""] if health["warnings"] else [])
-    lines = [f"# Calibration report: {summary['robot']}", "", status, ""] + warnings + [
-             f"Data: `{summary['data']}` ({s['total']} samples, {summary['device']} device; units in file "
+    warnings = [f"- {md_text(w)}" for w in health["warnings"]] + ([""] if health["warnings"] else [])
+    lines = [f"# Calibration report: {md_text(summary['robot'])}", "", status, ""] + warnings + [
+             f"Data: {md_code(summary['data'])} ({s['total']} samples, {summary['device']} device; units in file "
              f"{summary['units_in_file']}). Training {s['train']}, held-out {s['heldout']} (random split, seed {summary['seed']}).",
              "", "## Errors before and after", "",
              "\"Before\" is the nominal robot with the unknown device frame and marker fitted (the fair baseline).", "",
@@ -229,7 +254,7 @@ def job_markdown(summary, images: dict, robot_file: str | None) -> str:
         lines.append(row)
     t = summary["timings_s"]
     verdict = heldout_verdict(summary)
-    lines += ["", verdict] if verdict else []
+    lines += ["", md_text(verdict)] if verdict else []
     lines += ["", f"Solver {summary['solver']}: {summary['iterations']} iterations, converged {summary['converged']}; "
               f"compile {t.get('compile_s', 0):.2f} s, run {t.get('run_s', 0) * 1e3:.1f} ms.", ""]
     ident = summary["identifiability"]
@@ -237,20 +262,21 @@ def job_markdown(summary, images: dict, robot_file: str | None) -> str:
               f"{ident['estimated']} of {ident['free']} free parameters identified (base set of the weighted Jacobian's "
               f"columns, seed 001 App. III); scaled condition number {_fmt(ident['condition_number_scaled'], '.3g')}.", ""]
     if ident["undetermined"]:
-        lines.append(f"Not separable from the others (kept at their prior): {', '.join(ident['undetermined'])}.")
+        lines.append(f"Not separable from the others (kept at their prior): {', '.join(map(md_text, ident['undetermined']))}.")
     if ident["poorly_determined"]:
-        lines.append(f"Standard error above 10% of a typical size (1 cm / 0.01 rad): {', '.join(ident['poorly_determined'])}.")
+        lines.append("Standard error above 10% of a typical size (1 cm / 0.01 rad): "
+                     f"{', '.join(map(md_text, ident['poorly_determined']))}.")
     lines += ["", "## Parameters", "", "| parameter | nominal | identified | change | std. error | unit | status |",
               "|---|---|---|---|---|---|---|"]
     for row in summary["parameters"]:
         ch, se, unit = _display(row)
-        lines.append(f"| {row['name']} | {row['nominal']:.6g} | {row['identified']:.6g} | {ch:+.4g} | {_fmt(se, '.3g')} | "
+        lines.append(f"| {md_text(row['name'])} | {row['nominal']:.6g} | {row['identified']:.6g} | {ch:+.4g} | {_fmt(se, '.3g')} | "
                      f"{unit} | {row['status']} |")
     lines += ["", "Nominal and identified values in m / rad; change and standard error in mm / mrad.", "", "## Plots", ""]
     for title, name in images.items():
         lines += [f"### {title}", "", f"![{title}]({name})", ""]
     if robot_file:
-        lines += ["## Calibrated robot", "", f"`{robot_file}` (device frame and marker offset are in `results.json`).", ""]
+        lines += ["## Calibrated robot", "", f"{md_code(robot_file)} (device frame and marker offset are in `results.json`).", ""]
     return "\n".join(lines)
 
 
@@ -261,10 +287,11 @@ _CSS = ("body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;
 
 def job_html(markdown_text: str, title: str) -> str:
     """The Markdown report as one self-contained HTML page (images stay beside it), rendered with
-    markdown-it-py (a dependency of rich)."""
+    markdown-it-py (a dependency of rich) with raw HTML off: any tag in the text is shown, never run."""
     from markdown_it import MarkdownIt
 
-    body = MarkdownIt("commonmark").enable("table").render(markdown_text)
+    body = MarkdownIt("commonmark", {"html": False}).enable("table").render(markdown_text)
+    title = html.escape(_one_line(title))
     return (f"<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>{title}</title><style>{_CSS}</style></head>"
             f"<body>\n{body}</body></html>\n")
 
@@ -272,16 +299,14 @@ def job_html(markdown_text: str, title: str) -> str:
 def write_job(out: str, job: JobResult, write_robot=None, robot_file: str | None = None) -> list[str]:
     """Write results.json, report.md, report.html, the plots and (via `write_robot(path)`) the calibrated robot.
 
-    Everything is first written to a hidden staging folder inside `out` and moved into place only
-    when all files exist, so a failure leaves no partial output (the staging folder is removed)."""
+    Everything is first written to a hidden staging folder beside `out` and swapped in as `out` only
+    when all files exist (`jaxcal.io_atomic.replace_folder`): a failure leaves `out` as it was (the
+    staging folder is removed), and files of an earlier run that this one does not write are gone.
+    `robot_file` must be a plain file name (`jaxcal.io_atomic.safe_filename`)."""
+    if robot_file is not None and (os.path.basename(robot_file) != robot_file or robot_file.startswith(".")):
+        raise ValueError(f"robot_file must be a plain file name, got {robot_file!r}")
     os.makedirs(out, exist_ok=True)
-    stage = tempfile.mkdtemp(dir=out, prefix=".staging-")
-    try:
-        names = _write_all(stage, job, write_robot, robot_file)
-        for name in names:
-            os.replace(os.path.join(stage, name), os.path.join(out, name))
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
+    names = replace_folder(out, lambda stage: _write_all(stage, job, write_robot, robot_file))
     return [os.path.join(out, n) for n in names]
 
 
@@ -291,7 +316,8 @@ def _write_all(folder, job, write_robot, robot_file):
     plot_errors_per_pose(job.summary, os.path.join(folder, images["Error per pose"]))
     plot_error_map(job, os.path.join(folder, images["Error over the workspace"]))
     if job.fit.history is not None:
-        plot_convergence(job.fit.history, os.path.join(folder, images["Convergence"]), f"{job.summary['robot']}: solver convergence")
+        plot_convergence(job.fit.history, os.path.join(folder, images["Convergence"]),
+                         f"{plain_text(job.summary['robot'])}: solver convergence")
     else:
         images.pop("Convergence")
     names = list(images.values())
@@ -307,5 +333,5 @@ def _write_all(folder, job, write_robot, robot_file):
     return names
 
 
-__all__ = ["JobResult", "identifiability_summary", "job_markdown", "parameter_rows", "plot_error_map",
+__all__ = ["JobResult", "identifiability_summary", "job_markdown", "md_code", "md_text", "parameter_rows", "plot_error_map",
            "plot_errors_per_pose", "job_html", "run_job", "write_job"]

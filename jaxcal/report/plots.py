@@ -13,6 +13,12 @@ import numpy as np  # noqa: E402
 from jaxcal.io_atomic import atomic_path, write_text_atomic  # noqa: E402,F401
 
 
+def plain_text(text) -> str:
+    """A string from an input (a robot name) shown literally in a matplotlib title: `$` would start
+    mathtext (and a malformed formula fails the whole plot), control characters become spaces."""
+    return "".join(" " if ord(c) < 32 else c for c in str(text)).replace("$", r"\$")
+
+
 def save_atomic(fig, path: str, dpi: int = 120) -> str:
     """Save a figure to a temp file beside `path`, then rename: no half-written file is left."""
     try:

@@ -16,7 +16,8 @@ MCPC (seed 004 Table 4.1):
 
 Optional keys: name, home, q_min, q_max, joint_names, actuated (mcpc), tip (mcpc), closure_start (mcpc:
 the free-joint start of the closure, see docs/closure.md). Errors name
-the file, the row and the field.
+the file, the row and the field. A key given twice, a top-level key that looks like a misspelt known
+key (`joint_name`), and a joint name given twice are errors too; other extra keys are ignored.
 """
 
 from __future__ import annotations
@@ -28,9 +29,11 @@ import numpy as np
 import yaml
 
 from jaxcal.kin.conventions import PRY_KINDS
+from jaxcal.names import closest, duplicates
 from jaxcal.robots.build import mcpc_robot, mdh_robot, pry_robot
 from jaxcal.robots.errors import RobotFileError
 from jaxcal.robots.urdf import load_urdf, save_urdf
+from jaxcal.yamlfile import load_yaml
 
 _COLUMNS = {
     "pry": ["x", "y", "z", "pitch", "roll", "yaw", "type"],
@@ -38,6 +41,8 @@ _COLUMNS = {
     "mcpc": ["a1", "a2", "a3", "d1", "d2", "d3", "predecessor", "closure", "type"],
 }
 _ROWS_KEY = {"pry": "joints", "mdh": "frames", "mcpc": "rows"}
+KNOWN_KEYS = ("name", "convention", "units", "base", "columns", "joints", "frames", "rows", "home", "q_min", "q_max",
+              "joint_names", "actuated", "tip", "closure_start", "free", "description")
 _TYPE_LETTERS = {"R": "revolute", "P": "prismatic", "C": "cylindrical", "U": "universal", "S": "spherical", "F": "fixed"}
 
 
@@ -78,10 +83,27 @@ def _rows(doc, conv, path):
     return rows
 
 
+def _check_keys(doc: dict, path: str) -> None:
+    """A top-level key close to a known one but not it (a typo) and a joint name given twice are errors."""
+    for key in doc:
+        if key not in KNOWN_KEYS:
+            near = closest(str(key), KNOWN_KEYS, n=1)
+            if near:
+                raise RobotFileError(f"{path}: unknown key {key!r} (did you mean {near[0]!r}?)")
+    names = doc.get("joint_names")
+    if names is not None:
+        if not isinstance(names, list) or not all(isinstance(n, str) and n for n in names):
+            raise RobotFileError(f"{path}: field 'joint_names' must be a list of non-empty names, got {names!r}")
+        dup = duplicates(names)
+        if dup:
+            raise RobotFileError(f"{path}: field 'joint_names': name {dup[0]!r} given twice; joint names must be unique")
+
+
 def robot_from_dict(doc: dict, path: str = "<dict>"):
     """Build a robot from a parsed YAML document."""
     if not isinstance(doc, dict):
         raise RobotFileError(f"{path}: expected a mapping at the top level")
+    _check_keys(doc, path)
     conv = doc.get("convention")
     if conv not in _COLUMNS:
         raise RobotFileError(f"{path}: field 'convention' must be one of {sorted(_COLUMNS)}, got {conv!r}")
@@ -128,10 +150,14 @@ def load_robot(path: str, **kwargs):
     if not os.path.exists(path):
         raise RobotFileError(f"{path}: no such file")
     try:
-        with open(path) as fh:
-            doc = yaml.safe_load(fh)
+        with open(path, "rb") as fh:
+            raw = fh.read()
+    except OSError as exc:
+        raise RobotFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    try:
+        doc = load_yaml(raw)
     except yaml.YAMLError as exc:
-        raise RobotFileError(f"{path}: not valid YAML: {exc}") from None
+        raise RobotFileError(f"{path}: not valid YAML: {' '.join(str(exc).split())}") from None
     return robot_from_dict(doc, path)
 
 

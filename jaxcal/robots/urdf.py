@@ -17,6 +17,10 @@ are folded into the joint origin (revolute: origin rotation times Rot(axis, offs
 origin shifted along the axis), so q = 0 in the written file is the calibrated zero; pinocchio,
 ROS and MoveIt read plain origins, while `<calibration>` is ignored by their kinematics.
 Fixed joints folded at import keep their origins; the moving joint after them absorbs the change.
+
+Checked before use (`check_structure`): UTF-8 text, no DOCTYPE or entity declarations (no entity
+expansion, no external files read), a `<robot>` root, unique `<link>` and `<joint>` names, every link
+with at most one parent joint, no cycle; each error names the file, the element and its line.
 """
 
 from __future__ import annotations
@@ -91,28 +95,86 @@ def _quiet_parser():
         core.on_error = saved
 
 
-def parse_urdf(text: str, source: str = "<string>"):
-    """The urdf_parser_py model of a URDF text; malformed XML and invalid elements raise URDFError."""
+def _xml_tree(text: str, source: str):
+    """The lxml root of a URDF text, parsed without entity expansion, DTD loading or network access."""
     from lxml import etree
+
+    try:
+        raw = text.encode("utf-8")
+    except UnicodeEncodeError as exc:
+        raise URDFError(f"{source}: not valid text ({exc.reason} at character {exc.start})") from None
+    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False)
+    try:
+        root = etree.fromstring(raw, parser)
+    except etree.XMLSyntaxError as exc:
+        raise URDFError(f"{source}: malformed XML: {exc}") from None
+    except ValueError as exc:
+        raise URDFError(f"{source}: malformed XML: {exc}") from None
+    if root is None:
+        raise URDFError(f"{source}: malformed XML: no root element")
+    info = root.getroottree().docinfo
+    if info.doctype or info.internalDTD is not None:
+        raise URDFError(f"{source}: a DOCTYPE (entity declarations) is not allowed in a URDF; remove the <!DOCTYPE ...> line")
+    if root.tag != "robot":
+        raise URDFError(f"{source}, line {root.sourceline}: the root element is <{root.tag}>, expected <robot>")
+    return root
+
+
+def _unique_names(root, tag: str, source: str) -> None:
+    """Every <tag> child of <robot> has a name, and no name is given twice (a URDF joint/link name is a key)."""
+    first = {}
+    for elem in root.findall(tag):
+        name = elem.get("name")
+        if name is None or not name.strip():
+            raise URDFError(f"{source}, line {elem.sourceline}: <{tag}> without a name")
+        if name in first:
+            raise URDFError(f"{source}, line {elem.sourceline}: duplicate <{tag} name='{name}'> (first on line {first[name]}); "
+                            f"{tag} names must be unique")
+        first[name] = elem.sourceline
+
+
+def check_structure(model, source: str) -> None:
+    """The joints form a forest of links: each joint's links exist, each link has at most one parent joint,
+    and following parents from any link ends at a root (no cycle)."""
+    links = {ln.name for ln in model.links}
+    parent_joint = {}
+    for j in model.joints:
+        for role, link in (("parent", j.parent), ("child", j.child)):
+            if link not in links:
+                raise URDFError(f"{source}: <joint name='{j.name}'>: {role} link {link!r} is not defined by any <link>")
+        if j.child in parent_joint:
+            raise URDFError(f"{source}: <link name='{j.child}'> has two parents: joints {parent_joint[j.child].name!r} and "
+                            f"{j.name!r} both have it as child (a URDF is a tree)")
+        parent_joint[j.child] = j
+    done = set()
+    for start in sorted(links):
+        path, link = [], start
+        while link in parent_joint and link not in done:
+            if link in path:
+                cycle = path[path.index(link):] + [link]
+                raise URDFError(f"{source}: the joints form a cycle through links {' -> '.join(cycle)} (a URDF is a tree)")
+            path.append(link)
+            link = parent_joint[link].parent
+        done.update(path)
+
+
+def parse_urdf(text: str, source: str = "<string>"):
+    """The urdf_parser_py model of a URDF text; malformed XML, invalid elements, duplicate names, links
+    with two parents and cycles raise URDFError (naming the file, the element and the line where known)."""
     from urdf_parser_py.urdf import URDF
     from urdf_parser_py.xml_reflection.core import ParseError
 
-    try:
-        etree.fromstring(text.encode())
-    except etree.XMLSyntaxError as exc:
-        raise URDFError(f"{source}: malformed XML: {exc}") from None
+    root = _xml_tree(text, source)
+    for tag in ("link", "joint"):
+        _unique_names(root, tag, source)
     try:
         with _quiet_parser():
             model = URDF.from_xml_string(text)
     except ParseError as exc:
         raise URDFError(f"{source}: {' '.join(str(exc).split())}") from None
-    except (AssertionError, ValueError, TypeError, AttributeError) as exc:
+    except (AssertionError, ValueError, TypeError, AttributeError, KeyError, IndexError, SyntaxError) as exc:
         raise URDFError(f"{source}: invalid URDF: {exc}") from None
-    links = {ln.name for ln in model.links}
-    for j in model.joints:
-        for role, link in (("parent", j.parent), ("child", j.child)):
-            if link not in links:
-                raise URDFError(f"{source}: <joint name='{j.name}'>: {role} link {link!r} is not defined by any <link>")
+    check_structure(model, source)
     return model
 
 
@@ -158,6 +220,14 @@ def _origin(joint):
     xyz = [0.0, 0.0, 0.0] if o is None or o.xyz is None else o.xyz
     rpy = [0.0, 0.0, 0.0] if o is None or o.rpy is None else o.rpy
     return origin_matrix(xyz, rpy)
+
+
+def _finite_origin(joint, source):
+    """The joint's origin transform; NaN or inf in xyz/rpy is a URDFError naming the joint."""
+    T = _origin(joint)
+    if not np.all(np.isfinite(T)):
+        raise URDFError(f"{source}: <joint name='{joint.name}'>/<origin>: non-finite value in xyz or rpy")
+    return T
 
 
 def _limits(joint, kind):
@@ -211,7 +281,12 @@ def robot_from_urdf(text: str, base: str | None = None, tip: str | None = None, 
     """Robot of the chain from link `base` (default: the root link) to link `tip` (default: the
     only leaf link) of a URDF text."""
     model = parse_urdf(text, source)
-    base = model.get_root() if base is None else base
+    if base is None:
+        roots = sorted(ln.name for ln in model.links if ln.name not in {j.child for j in model.joints})
+        if len(roots) != 1:
+            raise URDFError(f"{source}: give base= (the first link of the chain); the file has {len(roots)} root links, "
+                            f"e.g. {roots[:5]}")
+        base = roots[0]
     if tip is None:
         parents = {j.parent for j in model.joints}
         leaves = sorted(ln.name for ln in model.links if ln.name not in parents)
@@ -238,8 +313,8 @@ def robot_from_urdf(text: str, base: str | None = None, tip: str | None = None, 
         kind = _joint_type(joint, source)
         F = np.eye(4)
         for f in folded:
-            F = F @ _origin(f)
-        T = F @ _origin(joint)
+            F = F @ _finite_origin(f, source)
+        T = F @ _finite_origin(joint, source)
         geometry = list(T[:3, 3]) + list(matrix_rpy(T[:3, :3]))
         fields = cv.URDF_ROW if kind != "fixed" else cv.URDF_ROW[:6]
         rows = []
@@ -256,6 +331,8 @@ def robot_from_urdf(text: str, base: str | None = None, tip: str | None = None, 
             inputs = (len(joint_names),)
             joint_names.append(joint.name)
             lo_j, hi_j = _limits(joint, kind)
+            if not (np.isfinite(lo_j) and np.isfinite(hi_j)):
+                raise URDFError(f"{source}: <joint name='{joint.name}'>/<limit>: non-finite lower/upper ({lo_j}, {hi_j})")
             lo.append(lo_j)
             hi.append(hi_j)
         axis = _axis(joint, source) if kind != "fixed" else (0.0, 0.0, 1.0)
@@ -297,8 +374,16 @@ def load_urdf(path: str, base: str | None = None, tip: str | None = None, name: 
     path = str(path)
     if not os.path.exists(path):
         raise URDFError(f"{path}: no such file")
-    with open(path, encoding="utf-8") as fh:
-        text = fh.read()
+    try:
+        with open(path, "rb") as fh:
+            raw = fh.read()
+    except OSError as exc:
+        raise URDFError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = raw.count(b"\n", 0, exc.start) + 1
+        raise URDFError(f"{path}, line {line}: not UTF-8 text (byte 0x{raw[exc.start]:02x})") from None
     robot = robot_from_urdf(text, base, tip, source=path, name=name)
     robot.extras["urdf_path"] = os.path.realpath(path)
     return robot
@@ -433,5 +518,5 @@ def save_urdf(robot: Robot, path: str, a=None) -> str:
     return path
 
 
-__all__ = ["GRAVITY", "URDFError", "compliance_inputs", "gravity_torques", "load_urdf", "with_gravity_compliance",
+__all__ = ["GRAVITY", "URDFError", "check_structure", "compliance_inputs", "gravity_torques", "load_urdf", "with_gravity_compliance",
            "matrix_rpy", "parse_urdf", "robot_from_urdf", "rpy_matrix", "save_urdf", "urdf_text"]
