@@ -54,16 +54,19 @@ def test_ga_seeded_from_the_linear_solution_stops_at_the_fitness_limit(thesis):
     assert never.generations_run == 20 and never.limit_generation[0] == -1
 
 
-@pytest.mark.slow  # ~45 s here: the GA compile (~8 s) and the core's solver compile (~29 s)
+@pytest.mark.slow  # ~45 s here: two GA compiles (~8 s each) and the core's solver compile (~29 s)
 def test_hybrid_pipeline_on_the_thesis_setup(thesis):
     """One call: linear (4.56e-3) -> seeded GA stopped at the fitness limit (<= 1e-5, generation 128 for seed 0,
     measured) -> LM polish through core.calibrate: fitness ~1e-16 (measured 1.2e-16); the polished model
     reproduces the true tip pose at the measured configuration to < 1e-12 m / rad. With one pose (6 equations,
     18 module parameters) only the pose is determined, not the parameters (as in the thesis)."""
     rb, a_true, data = thesis
-    h = hybrid(rb, data, population=50, generations=250, fitness_limit=LIMIT, seed=0, chunk=1)
+    h = hybrid(rb, data, population=50, generations=250, fitness_limit=LIMIT, seed=0, chunk=1,
+               monte_carlo=dict(tol=1e-6, stop_on="tip", batch=4, max_runs=8))
     assert 4.4e-3 < h.fitness["linear"] < 4.7e-3 and h.fitness["ga"] <= LIMIT and 50 < h.limit_generation < 250
     assert h.polish is not None and h.polish.converged and h.fitness["polished"] < 1e-12
     q = jnp.asarray(data.q)
     got, true = jc.forward(rb, jnp.asarray(h.a), q), jc.forward(rb, jnp.asarray(a_true), q)
     assert float(jnp.abs(got.p - true.p).max()) < 1e-12 and float(jnp.abs(got.R - true.R).max()) < 1e-12
+    mc = h.monte_carlo  # level 1 of the seeded GA (eq 5.7-5.9), stopped on the predicted tip positions
+    assert mc is not None and 2 <= mc.runs <= 8 and np.all(np.abs(mc.dg) <= 0.005 + 1e-15)
