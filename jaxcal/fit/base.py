@@ -61,6 +61,18 @@ def base_set(W, priority, c: float | None = None) -> BaseSet:
     return BaseSet(independent, order[zero], regrouped, beta, float(tau), diag, order)
 
 
+def numerical_rank(W, c: float | None = None) -> int:
+    """Rank of W by SVD under the threshold rule of `base_set`: singular values above c eps s_max (default
+    c = number of columns). The same relative threshold as the QR pivots of eq 34, so the two agree wherever
+    the spectrum has a gap at it; a caller that compares them should pass the same c (core.BASE_TOL / eps)."""
+    W = np.asarray(W, float)
+    if not W.size:
+        return 0
+    s = np.linalg.svd(W, compute_uv=False)
+    tau = (W.shape[1] if c is None else c) * np.finfo(float).eps * s[0]
+    return int(np.sum(s > tau))
+
+
 def regrouping_relations(bs: BaseSet, names, tol: float = 1e-8) -> list[str]:
     """Readable relations 'base_k absorbs + b * regrouped_j' from beta (eq 32, 37)."""
     out = []

@@ -143,7 +143,11 @@ class Calibration:
 
 @functools.partial(jax.jit, static_argnames=("robot", "method", "nr", "max_steps"))
 def _lm_on_base(x, idx, Qi, Qj, Y, *, robot, method, nr, max_steps):
-    """optimistix LM on the base entries x[idx] (the others fixed); compiled once per robot/method/shapes."""
+    """optimistix LM on the base entries x[idx] (the others fixed); compiled once per robot/method/shapes.
+
+    Not the calibration core's solver: a GECARO method's residual (seed 001 §3) runs over pairs of
+    configurations (point/frame link, plane link 2, distance) and the method's plane coefficients, which a
+    core `Problem` (one configuration and one device reading per sample) cannot express."""
     import optimistix as optx
 
     from jaxcal.fit.methods import stacked_residual

@@ -33,6 +33,9 @@ class GAResult:
     runs_best: np.ndarray        # (runs, G) best cost per generation of every run
     options: core.GAOptions
     timings: dict
+    fitness_limit: float | None = None  # eq 5.1a's epsilon, when the GA was asked to stop there
+    limit_generation: np.ndarray | None = None  # (runs,) first generation (1-based) whose best cost <= the limit, -1 never
+    generations_run: int = 0     # generations actually run (a multiple of chunk; < generations after a limit stop)
 
 
 @functools.lru_cache(maxsize=16)  # robots hash by identity: bounded
@@ -145,7 +148,13 @@ def prepare(robot: Robot, data: Dataset, *, population=50, generations=250, free
     return Setup(opts, free_idx, names, payload, lb, ub, a_full0, start, *fns, chunk)
 
 
-def run(robot: Robot, data: Dataset, *, seed=0, runs=1, progress=False, **kw):
+def first_at_or_below(best, limit) -> np.ndarray:
+    """(runs,) the first generation (1-based) whose best cost is <= limit (eq 5.1a), -1 where none is."""
+    hit = np.asarray(best) <= limit
+    return np.where(hit.any(axis=-1), np.argmax(hit, axis=-1) + 1, -1)
+
+
+def run(robot: Robot, data: Dataset, *, seed=0, runs=1, progress=False, fitness_limit=None, **kw):
     """Run `runs` independent GAs (vmapped) and return a GAResult. See `calibrate`."""
     st = prepare(robot, data, **kw)
     opts, payload, lb, ub, chunk = st.opts, st.payload, st.lb, st.ub, st.chunk
@@ -173,6 +182,8 @@ def run(robot: Robot, data: Dataset, *, seed=0, runs=1, progress=False, **kw):
         if bar:
             jax.block_until_ready(b)
             bar[0].advance(bar[1], chunk)
+        if fitness_limit is not None and np.all(np.asarray(b).min(axis=1) <= fitness_limit):
+            break  # eq 5.1a: every run's best individual meets the required accuracy
     dg, cost = st.best_fn(state)
     jax.block_until_ready(dg)
     run_s = time.perf_counter() - t1
@@ -183,13 +194,17 @@ def run(robot: Robot, data: Dataset, *, seed=0, runs=1, progress=False, **kw):
     mean = np.concatenate([np.asarray(m) for m in means], axis=1)
     a_best = np.asarray(full_vector(dg[0], st.a_full0, jnp.asarray(st.free_idx)))
     nr = robot.n_params
-    evals = runs * population * opts.subpopulations * (generations + 1)
+    done = best.shape[1]
+    evals = runs * population * opts.subpopulations * (done + 1)
     return GAResult(
         a=jnp.asarray(a_best[:nr]), device_params=jnp.asarray(a_best[nr:]), fitness=float(cost[0]),
         best=best[0], mean=mean[0], free=tuple(st.names[i] for i in st.free_idx), dg=np.asarray(dg[0]),
         runs_dg=np.asarray(dg), runs_fitness=np.asarray(cost), runs_best=best, options=opts,
         timings={"compile_s": compile_s, "run_s": run_s, "evaluations": evals,
-                 "evaluations_per_s": evals / run_s, "generations_per_s": runs * generations / run_s},
+                 "evaluations_per_s": evals / run_s, "generations_per_s": runs * done / run_s},
+        fitness_limit=fitness_limit,
+        limit_generation=None if fitness_limit is None else first_at_or_below(best, fitness_limit),
+        generations_run=done,
     )
 
 
@@ -207,6 +222,10 @@ def calibrate(robot: Robot, data: Dataset, population=50, generations=250, seed=
     initial: a full robot vector (e.g. a linear-formulation or LM solution) to seed the initial
     population (seed §5.2.2), spread +-seed_spread x bound around it; None = uniform in bounds.
     runs: independent GAs, vmapped (Monte Carlo level 1); `.a`, `.best`, `.mean` are run 0's.
+    fitness_limit: the required accuracy epsilon of seed eq 5.1a (sum over the measurements of the pose
+    error norms < epsilon): the GA stops after the first chunk of generations at whose end every run's best
+    cost is <= epsilon (chunk=1 stops at the generation itself); `.limit_generation` gives, per run, the
+    first generation that met it (-1: never), `.generations_run` how many ran.
     Other GA options (subpopulations, elite, crossover_fraction, selection, tournament_size,
     mutation_scale, mutation_shrink, migration_interval, migration_fraction): `core.GAOptions`.
     """
