@@ -50,7 +50,7 @@ def _stage(prog, text):
 
 # -- shared loading --------------------------------------------------------------------------------
 def load_robot_arg(spec: str, base=None, tip=None):
-    """A built-in robot name, a robot YAML or a URDF (with base/tip links)."""
+    """A built-in robot name, a robot YAML (seed table, DH table, UR kinematics) or a URDF (with base/tip links)."""
     import jaxcal as jc
 
     if spec in jc.robots.builtin.available():
@@ -269,11 +269,12 @@ def expand_free(patterns, robot):
 
 def calibrated_robot_file(robot) -> str:
     """File name of the calibrated robot: URDF for robots that came from a URDF (a file or a
-    URDF-based built-in), else the seed-table YAML. The robot's name comes from its file, so it passes
+    URDF-based built-in), else YAML in the layout the robot was read in (seed table, DH table, UR kinematics). The robot's name comes from its file, so it passes
     through `safe_filename` (no `/`, `..`, NUL or markup reaches the file system)."""
     from jaxcal.io_atomic import safe_filename
 
-    return f"{safe_filename(robot.name)}_calibrated.{robot.bodies[0].conv.file_format}"
+    fmt = robot.extras.get("file_format") or robot.bodies[0].conv.file_format  # DH tables, UR kinematics: yaml
+    return f"{safe_filename(robot.name)}_calibrated.{fmt}"
 
 
 # -- identifiable --------------------------------------------------------------------------------------

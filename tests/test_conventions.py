@@ -48,7 +48,7 @@ def test_local_transform_jacobians_match_finite_differences(name, kind):
 @pytest.mark.parametrize("name,kind", CASES, ids=[f"{n}-{k}" for n, k in CASES])
 def test_joint_queries_agree_with_the_transform(name, kind):
     """The first joint variable adds to row[joint_row_index]; a one-input joint moves along or about
-    joint_axis (body frame), about a point on the axis that is the parent's or the body's origin."""
+    joint_axis (body frame, or the parent's when axis_in_parent_frame), about a point on the axis that is the parent's or the body's origin."""
     conv = get_convention(name)
     row, qv = _sample(conv, kind, 11)
     assert conv.is_fixed(kind) == (conv.n_inputs(kind) == 0)
@@ -71,9 +71,9 @@ def test_joint_queries_agree_with_the_transform(name, kind):
     assert abs(np.linalg.norm(axis) - 1.0) < 1e-12
     if conv.is_prismatic(kind):
         np.testing.assert_allclose(dR, 0.0, atol=1e-12)
-        np.testing.assert_allclose(R.T @ dp, axis, atol=1e-12)
+        np.testing.assert_allclose(dp if conv.axis_in_parent_frame(kind) else R.T @ dp, axis, atol=1e-12)
     else:
-        w = R @ axis
+        w = axis if conv.axis_in_parent_frame(kind) else R @ axis  # the axis in the parent's frame
         skew = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
         np.testing.assert_allclose(dR, skew @ R, atol=1e-12)
         centre = np.zeros(3) if conv.axis_through_parent_origin(kind) else p
@@ -180,3 +180,27 @@ def test_a_convention_defined_here_drives_forward():
     np.testing.assert_allclose(np.asarray(pose.R), T[:3, :3], atol=1e-14)
     np.testing.assert_allclose(np.asarray(pose.p), T[:3, 3], atol=1e-14)
     assert hash(arm.bodies[0]) == hash(Body("j1", StandardDH.name, 0, -1, (0, 1, 2, 3), (0,)))
+
+
+@pytest.mark.parametrize("name,kind", CASES, ids=[f"{n}-{k}" for n, k in CASES])
+def test_motion_split_reproduces_the_transform(name, kind):
+    """T(row, kind, q) = A M(q) B for the (A, B) of motion_split (used to write URDF), M the motion about
+    or along joint_axis; conventions that cannot be split say so (NotImplementedError)."""
+    conv = get_convention(name)
+    if conv.reads_parent or conv.n_inputs(kind) > 1:
+        pytest.skip("absolute angles / several joint variables: no one-joint URDF split")
+    row, qv = _sample(conv, kind, 13)
+    try:
+        A, B = conv.motion_split(row, kind)
+    except NotImplementedError:
+        pytest.skip(f"{name} does not split")
+    M = np.eye(4)
+    if conv.n_inputs(kind) == 1:
+        u = conv.joint_axis(kind)
+        if conv.is_prismatic(kind):
+            M[:3, 3] = u * qv[0]
+        else:
+            K = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
+            M[:3, :3] = np.eye(3) + np.sin(qv[0]) * K + (1 - np.cos(qv[0])) * K @ K
+    T = np.asarray(conv.local_transform(jnp.asarray(row), kind, jnp.asarray(qv)).matrix())
+    np.testing.assert_allclose(A @ M @ B, T, atol=1e-14)

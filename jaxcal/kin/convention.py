@@ -74,6 +74,40 @@ class Convention(abc.ABC):
         """True when the joint axis passes through the parent's origin instead of the body's own."""
         return False
 
+    def axis_in_parent_frame(self, kind) -> bool:
+        """True when `joint_axis` is expressed in the parent's frame rather than the body's own (a joint
+        that moves first, before the body's constant geometry, as in standard DH: the axis is the
+        parent's z whatever the row). Use `joint_line` to get the axis in the world either way."""
+        return False
+
+    def motion_split(self, row, kind):
+        """(A, B), constant 4x4 numpy matrices with local_transform(row, kind, q) = A M(q) B, M(q) the
+        rotation about (revolute) or slide along (prismatic) `joint_axis(kind)` through the origin.
+
+        Used to write a robot as URDF (joint origin = B_parent A, axis = joint_axis). The default,
+        A = T(row, kind, 0) and B = I, holds for joints that move last, about the body's own axis
+        through its own origin (modified DH, URDF); conventions where that is not so override it."""
+        if self.axis_through_parent_origin(kind) or self.axis_in_parent_frame(kind):
+            raise NotImplementedError(f"convention {self.name!r} must override motion_split")
+        return pose_matrix(self.local_transform(row, kind, np.zeros(self.n_inputs(kind)))), np.eye(4)
+
+
+def pose_matrix(pose: Pose) -> np.ndarray:
+    """The 4x4 numpy matrix of a Pose."""
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = np.asarray(pose.R, float), np.asarray(pose.p, float)
+    return T
+
+
+def joint_line(conv: Convention, kind, R_body, p_body, R_parent, p_parent):
+    """(point, direction) of a one-input joint's axis in the world, from the body's and its parent's
+    world frames: the direction is R_body u (R_parent u when `axis_in_parent_frame`), u = joint_axis(kind);
+    the point is the body's origin, or the parent's when `axis_through_parent_origin`."""
+    u = conv.joint_axis(kind)
+    direction = (R_parent if conv.axis_in_parent_frame(kind) else R_body) @ u
+    point = p_parent if conv.axis_through_parent_origin(kind) else p_body
+    return point, direction
+
 
 def register(convention: Convention) -> Convention:
     """Add a convention under `convention.name`; a name already taken by another class is an error."""

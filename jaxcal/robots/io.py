@@ -14,6 +14,12 @@ MCPC (seed 004 Table 4.1):
     rows:
       - [0, 0, 0, 0, 0, 0, 0, 0, 3]
 
+DH tables with a named convention (`convention: standard_dh | craig_mdh | khalil_kleinfinger`), a
+parent column, fixed 6-D transform rows and joint coupling: see `jaxcal.robots.table`. `convention:
+mdh` keeps the seed 001 layout above (Khalil-Kleinfinger letters, sigma column); a file with `frames:`
+and no `convention` is read that way too. The UR ROS driver's kinematics YAML (`kinematics:` or
+`dh_parameters:`) is recognised by its keys: see `jaxcal.robots.ur`.
+
 Optional keys: name, home, q_min, q_max, joint_names, actuated (mcpc), tip (mcpc), closure_start (mcpc:
 the free-joint start of the closure, see docs/closure.md). Errors name
 the file, the row and the field. A key given twice, a top-level key that looks like a misspelt known
@@ -32,7 +38,10 @@ from jaxcal.kin.conventions import PRY_KINDS
 from jaxcal.names import closest, duplicates
 from jaxcal.robots.build import mcpc_robot, mdh_robot, pry_robot
 from jaxcal.robots.errors import RobotFileError
+from jaxcal.robots.table import TABLE_CONVENTIONS, table_dict, table_robot
+from jaxcal.robots.ur import is_ur_kinematics, robot_from_ur, ur_dict
 from jaxcal.robots.urdf import load_urdf, save_urdf
+from jaxcal.robots.urdf_write import robot_urdf_text
 from jaxcal.yamlfile import load_yaml
 
 _COLUMNS = {
@@ -42,7 +51,8 @@ _COLUMNS = {
 }
 _ROWS_KEY = {"pry": "joints", "mdh": "frames", "mcpc": "rows"}
 KNOWN_KEYS = ("name", "convention", "units", "base", "columns", "joints", "frames", "rows", "home", "q_min", "q_max",
-              "joint_names", "actuated", "tip", "closure_start", "free", "description")
+              "joint_names", "actuated", "tip", "closure_start", "free", "description", "coupling")
+CONVENTIONS = tuple(sorted(set(_COLUMNS) | set(TABLE_CONVENTIONS)))
 _TYPE_LETTERS = {"R": "revolute", "P": "prismatic", "C": "cylindrical", "U": "universal", "S": "spherical", "F": "fixed"}
 
 
@@ -99,15 +109,34 @@ def _check_keys(doc: dict, path: str) -> None:
             raise RobotFileError(f"{path}: field 'joint_names': name {dup[0]!r} given twice; joint names must be unique")
 
 
-def robot_from_dict(doc: dict, path: str = "<dict>"):
-    """Build a robot from a parsed YAML document."""
+def _convention(doc, path) -> str:
+    """The file's convention; a file with `frames:` and none is the seed 001 (Khalil-Kleinfinger) layout."""
+    conv = doc.get("convention")
+    if conv is None and "frames" in doc:
+        return "mdh"
+    if conv not in CONVENTIONS:
+        near = closest(str(conv), CONVENTIONS, n=1)
+        hint = f" (did you mean {near[0]!r}?)" if near else ""
+        raise RobotFileError(f"{path}: field 'convention': unknown convention {conv!r}{hint}; expected one of {list(CONVENTIONS)}")
+    return conv
+
+
+def robot_from_dict(doc: dict, path: str = "<dict>", lines=None):
+    """Build a robot from a parsed YAML document (`lines`: the file line of each row of a DH table)."""
     if not isinstance(doc, dict):
         raise RobotFileError(f"{path}: expected a mapping at the top level")
-    _check_keys(doc, path)
-    conv = doc.get("convention")
-    if conv not in _COLUMNS:
-        raise RobotFileError(f"{path}: field 'convention' must be one of {sorted(_COLUMNS)}, got {conv!r}")
     name = str(doc.get("name", os.path.splitext(os.path.basename(path))[0]))
+    if is_ur_kinematics(doc):
+        return robot_from_ur(doc, path, name)
+    _check_keys(doc, path)
+    conv = _convention(doc, path)
+    if conv in TABLE_CONVENTIONS:
+        try:
+            return table_robot({**doc, "convention": conv}, path, lines, name)
+        except RobotFileError:
+            raise
+        except ValueError as exc:
+            raise RobotFileError(f"{path}: {exc}") from None
     ang, lng = _angle_scale(doc, path), _length_scale(doc, path)
     rows = _rows(doc, conv, path)
     common = {k: doc[k] for k in ("home", "q_min", "q_max", "joint_names") if k in doc}
@@ -158,7 +187,21 @@ def load_robot(path: str, **kwargs):
         doc = load_yaml(raw)
     except yaml.YAMLError as exc:
         raise RobotFileError(f"{path}: not valid YAML: {' '.join(str(exc).split())}") from None
-    return robot_from_dict(doc, path)
+    return robot_from_dict(doc, path, row_lines(raw, "joints"))
+
+
+def row_lines(raw, key: str) -> list[int] | None:
+    """1-based file line of each item of the top-level list `key` (None when there is none)."""
+    try:
+        node = yaml.compose(raw, Loader=yaml.SafeLoader)
+    except yaml.YAMLError:
+        return None
+    if not isinstance(node, yaml.MappingNode):
+        return None
+    for k, v in node.value:
+        if getattr(k, "value", None) == key and isinstance(v, yaml.SequenceNode):
+            return [item.start_mark.line + 1 for item in v.value]
+    return None
 
 
 def robot_to_dict(robot, a=None) -> dict:
@@ -166,6 +209,11 @@ def robot_to_dict(robot, a=None) -> dict:
 
     Angles are written in radians and lengths in metres.
     """
+    source = robot.extras.get("source_format")
+    if source == "ur_kinematics":
+        return ur_dict(robot, a, robot.extras.get("ur_form", "kinematics"))
+    if "table" in robot.extras or robot.bodies[0].convention not in _COLUMNS:
+        return table_dict(robot, a)
     a = np.asarray(robot.nominal_np if a is None else a, float)
     conv = robot.bodies[0].convention
     ext = np.append(a, 0.0)
@@ -197,16 +245,25 @@ def robot_to_dict(robot, a=None) -> dict:
 
 
 def save_robot(robot, path: str, a=None) -> str:
-    """Write the robot (with parameters a) as YAML atomically (temp file, then rename); a path ending
-    in ".urdf" writes the calibrated URDF of a URDF-loaded robot (`jaxcal.robots.urdf.save_urdf`)."""
+    """Write the robot (with parameters a) as YAML atomically (temp file, then rename): the layout it
+    was read in (seed table, DH table, UR kinematics). A path ending in ".urdf" writes the calibrated
+    URDF of a URDF-loaded robot (`jaxcal.robots.urdf.save_urdf`) or a new URDF of any other robot
+    (`jaxcal.robots.urdf_write.robot_urdf_text`)."""
     if str(path).lower().endswith(".urdf"):
-        return save_urdf(robot, path, a)
-    if robot.bodies[0].convention not in _COLUMNS:
-        raise RobotFileError(f"{path}: a robot of the {robot.bodies[0].convention!r} convention is saved as .urdf, not YAML")
+        if "urdf_text" in robot.extras:
+            return save_urdf(robot, path, a)
+        return _write_text(robot_urdf_text(robot, a), path, ".urdf.tmp")
+    if "urdf_text" in robot.extras and "source_format" not in robot.extras:
+        raise RobotFileError(f"{path}: a robot loaded from a URDF is saved as .urdf, not YAML")
     text = yaml.safe_dump(robot_to_dict(robot, a), sort_keys=False, default_flow_style=None)
+    return _write_text(text, path, ".yaml.tmp")
+
+
+def _write_text(text: str, path: str, suffix: str) -> str:
+    """Write text atomically (temp file in the same folder, then rename)."""
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, suffix=".yaml.tmp")
+    fd, tmp = tempfile.mkstemp(dir=folder, suffix=suffix)
     with os.fdopen(fd, "w") as fh:
         fh.write(text)
     os.replace(tmp, path)

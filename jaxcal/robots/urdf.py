@@ -8,7 +8,10 @@ parameters `<joint>.x .y .z .roll .pitch .yaw .offset`; fixed joints are folded 
 of the next moving joint, and fixed joints after the last moving joint become one fixed body
 named after the last of them (six parameters, no offset). The table is redundant on purpose
 (rpy and offset, the last joint and the marker); `jc.identify` estimates its base set.
-Continuous joints are revolute joints without limits. Inertials of the chain's links are kept in
+Continuous joints are revolute joints without limits. A `<mimic joint= multiplier= offset=>` joint
+is coupled (Cj of seed 001 eq 4, `Robot.coupling_joint`): its variable is multiplier x the source's
+value, its offset is added to its offset parameter, and the inputs are the chain's independent joints
+followed by any mimicked source outside the chain (a mimic of a mimic composes). Inertials of the chain's links are kept in
 `robot.extras["inertia"]` (per body: mass, centre of mass and inertia about it, in the body frame).
 
 Export (`save_urdf(robot, path, a)`): the source URDF is rewritten with only the chain's joint
@@ -202,8 +205,6 @@ def _joint_type(joint, source):
     if joint.type not in _TYPE:
         raise URDFError(f"{source}: <joint name='{joint.name}'>: unsupported joint type {joint.type!r}; "
                         f"expected one of {sorted(_TYPE)}")
-    if joint.mimic is not None:
-        raise URDFError(f"{source}: <joint name='{joint.name}'>: <mimic> joints are not supported in a calibrated chain")
     return _TYPE[joint.type]
 
 
@@ -307,7 +308,7 @@ def robot_from_urdf(text: str, base: str | None = None, tip: str | None = None, 
     if pending:
         groups.append((pending[:-1], pending[-1]))
 
-    names, values, units, priority, bodies, joint_names, lo, hi = [], [], [], [], [], [], [], []
+    names, values, units, priority, bodies, moving = [], [], [], [], [], []
     body_meta, inertia = [], []
     for b, (folded, joint) in enumerate(groups):
         kind = _joint_type(joint, source)
@@ -328,27 +329,73 @@ def robot_from_urdf(text: str, base: str | None = None, tip: str | None = None, 
             rows.append(-1)
         inputs = ()
         if kind != "fixed":
-            inputs = (len(joint_names),)
-            joint_names.append(joint.name)
-            lo_j, hi_j = _limits(joint, kind)
-            if not (np.isfinite(lo_j) and np.isfinite(hi_j)):
-                raise URDFError(f"{source}: <joint name='{joint.name}'>/<limit>: non-finite lower/upper ({lo_j}, {hi_j})")
-            lo.append(lo_j)
-            hi.append(hi_j)
+            inputs = (len(moving),)
+            moving.append((joint, rows[6]))
         axis = _axis(joint, source) if kind != "fixed" else (0.0, 0.0, 1.0)
         bodies.append(Body(joint.name, "urdf", (kind, axis), b - 1, tuple(rows), inputs))
         body_meta.append({"joint": joint.name, "folded": tuple(f.name for f in folded), "type": joint.type})
         inertia.append(_body_inertia(chain, joint, link_by_name, kind))
 
-    lo, hi = np.array(lo), np.array(hi)
+    joint_names, lo, hi, C = _mimic_coupling(model, moving, values, source)
     home = np.clip(np.zeros(len(lo)), lo, hi)
     return Robot(
         name=name or model.name or "urdf", bodies=tuple(bodies), names=tuple(names), nominal_np=np.array(values),
         units=tuple(units), free_mask=np.ones(len(names), bool), priority=np.array(priority),
-        joint_names=tuple(joint_names), home_np=home, q_min=lo, q_max=hi, tip=len(bodies) - 1,
+        joint_names=tuple(joint_names), home_np=home, q_min=lo, q_max=hi, tip=len(bodies) - 1, coupling_joint=C,
         extras={"urdf_text": text, "urdf_source": source, "base_link": base, "tip_link": tip,
                 "urdf_bodies": tuple(body_meta), "inertia": tuple(inertia)},
     )
+
+
+def mimic_source(model, name: str, source: str):
+    """(independent joint, multiplier, offset) of a joint: q_name = multiplier q_source + offset, following
+    <mimic> links (a mimic of a mimic composes); a missing source or a mimic cycle is a URDFError."""
+    by_name = {j.name: j for j in model.joints}
+    mult, off, seen = 1.0, 0.0, [name]
+    joint = by_name[name]
+    while joint.mimic is not None:
+        src = joint.mimic.joint
+        if src not in by_name:
+            raise URDFError(f"{source}: <joint name='{joint.name}'>/<mimic joint='{src}'>: no joint named {src!r}")
+        if src in seen:
+            raise URDFError(f"{source}: <mimic> joints form a cycle {' -> '.join(seen + [src])}")
+        m = 1.0 if joint.mimic.multiplier is None else float(joint.mimic.multiplier)
+        o = 0.0 if joint.mimic.offset is None else float(joint.mimic.offset)
+        if not (np.isfinite(m) and np.isfinite(o)):
+            raise URDFError(f"{source}: <joint name='{joint.name}'>/<mimic>: non-finite multiplier or offset")
+        mult, off = mult * m, off * m + o
+        seen.append(src)
+        joint = by_name[src]
+    return joint, mult, off
+
+
+def _mimic_coupling(model, moving, values, source):
+    """Inputs, limits and Cj (seed 001 eq 4) of the chain's moving joints [(joint, offset parameter index)].
+
+    The independent joints of the chain are the inputs, in chain order, followed by the sources of
+    <mimic> joints that lie outside the chain; a mimic joint's variable is multiplier x its source and
+    its offset is added to the joint's offset parameter (`values`, changed in place). Cj is None when
+    no joint of the chain mimics another."""
+    resolved = [mimic_source(model, j.name, source) for j, _ in moving]
+    inputs = [j for j, _ in moving if j.mimic is None]
+    for src, _, _ in resolved:
+        if all(src.name != j.name for j in inputs):
+            inputs.append(src)
+    lo, hi = [], []
+    for j in inputs:
+        lo_j, hi_j = _limits(j, _joint_type(j, source))
+        if not (np.isfinite(lo_j) and np.isfinite(hi_j)):
+            raise URDFError(f"{source}: <joint name='{j.name}'>/<limit>: non-finite lower/upper ({lo_j}, {hi_j})")
+        lo.append(lo_j)
+        hi.append(hi_j)
+    names = [j.name for j in inputs]
+    C = None
+    if any(j.mimic is not None for j, _ in moving) or len(inputs) != len(moving):
+        C = np.zeros((len(moving), len(inputs)))
+        for m, ((joint, offset_index), (src, mult, off)) in enumerate(zip(moving, resolved)):
+            C[m, names.index(src.name)] = mult
+            values[offset_index] += off
+    return tuple(names), np.array(lo), np.array(hi), C
 
 
 def _body_inertia(chain, joint, link_by_name, kind):
@@ -420,6 +467,8 @@ def with_gravity_compliance(robot: Robot) -> Robot:
     """The robot with a compliance k_j (rad/(N m), parameter `<joint>.compliance`) on every revolute
     joint: angle = q + offset + k_j tau_j, where tau_j, the gravity torque from `gravity_torques` at
     the nominal geometry, is an extra joint input named `<joint>.tau` (after the joint values)."""
+    if robot.coupling_joint is not None:
+        raise ValueError(f"robot {robot.name!r}: gravity compliance is not available for coupled (<mimic>) joints")
     names, values, units, priority = list(robot.names), list(robot.nominal_np), list(robot.units), list(robot.priority)
     n, bodies, taus = robot.n_inputs, [], []
     for body in robot.bodies:
@@ -490,6 +539,9 @@ def urdf_text(robot: Robot, a=None) -> str:
             origin = etree.SubElement(elem, "origin")
         origin.set("xyz", " ".join(f"{v:.17g}" for v in T[:3, 3]))
         origin.set("rpy", " ".join(f"{v:.17g}" for v in matrix_rpy(T[:3, :3])))
+        mimic = elem.find("mimic")
+        if mimic is not None:  # its offset was added to the joint's offset parameter, now in the origin
+            mimic.set("offset", "0")
     note = etree.Comment(f" calibrated by jaxcal: origins of the joints {', '.join(m['joint'] for m in robot.extras['urdf_bodies'])} "
                          "carry the identified geometry; joint offsets are folded into them ")
     root.insert(0, note)

@@ -9,6 +9,7 @@ the rotation, so the local transform is (Rs Rm, Rs Rm b) and p_{n+1} = b0 + sum_
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from jaxcal.kin.convention import Convention, register
 from jaxcal.kin.pose import Pose
@@ -69,6 +70,15 @@ class PryModules(Convention):
 
     def axis_through_parent_origin(self, kind) -> bool:
         return True
+
+    def motion_split(self, row, kind):
+        """A = (Rs, 0), B = Trans(b): (Rs Rm, Rs Rm (b + bm)) = Rs M(q) Trans(b) for one-input and fixed kinds."""
+        if self.n_inputs(kind) > 1:
+            raise NotImplementedError(f"a {kind} PRY module has {self.n_inputs(kind)} joint variables; URDF joints have one")
+        A, B = np.eye(4), np.eye(4)
+        A[:3, :3] = np.asarray(pry_to_matrix(jnp.asarray(row[3:6], float)))
+        B[:3, 3] = np.asarray(row[0:3], float)
+        return A, B
 
 
 PRY = register(PryModules())
