@@ -45,11 +45,17 @@ LIMIT_FACTOR = 3.0  # readings this many times beyond the robot's limits that fi
 
 
 def prismatic_joints(robot) -> tuple[str, ...]:
-    """Names of the robot's prismatic joint inputs: their CSV values are lengths, not angles."""
+    """Names of the robot's prismatic joint inputs: their CSV values are lengths, not angles. With a
+    coupling matrix Cj (body inputs index the joint variables qj = Cj q), an input is prismatic when the
+    joint variables it drives are prismatic."""
+    C = robot.coupling_joint
     out = []
     for body in robot.bodies:
         if body.conv.is_prismatic(body.kind) and len(body.inputs) == 1:
-            out.append(robot.joint_names[body.inputs[0]])
+            if C is None:
+                out.append(robot.joint_names[body.inputs[0]])
+            else:
+                out += [robot.joint_names[k] for k in np.flatnonzero(C[body.inputs[0]]) if robot.joint_names[k] not in out]
     return tuple(out)
 
 
