@@ -304,7 +304,7 @@ def test_good_table_loads_and_bad_coupling_is_refused(tmp_path):
         robot_urdf_text(robot_from_dict(TORSO, "torso.yaml"))
 
 
-@pytest.mark.slow  # 53 s here (calibrate + report + plots)
+@pytest.mark.slow  # 53-84 s here (calibrate + report + plots)
 def test_cli_calibrates_a_dh_table_and_writes_the_same_layout(tmp_path):
     """`jaxcal calibrate kr6.yaml data.csv`: the robot argument takes a DH table; the calibrated robot is
     written as a DH table that reproduces the fit."""
