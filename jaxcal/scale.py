@@ -33,7 +33,7 @@ class FleetResult:
 
 
 def identify_fleet(robot, datasets, devices=None, sigma_position=1e-3, sigma_orientation=1e-3, solver="lm",
-                   max_steps=100, rtol=1e-8, atol=1e-10) -> FleetResult:
+                   max_steps=100, rtol=core.Settings.rtol, atol=core.Settings.atol) -> FleetResult:
     """Identify one robot model from several datasets (one per physical robot), sharded over devices.
 
     The estimated set and the starting point come from `identify` on the first dataset; every robot

@@ -282,7 +282,7 @@ def monte_carlo(robot, a_true, q, device="position", noise=None, runs: int = 100
     # divide only by an RMS above 1 (the noise term is ~1 when the sigmas are the noise levels)
     r0 = core.weighted_residuals(robot, dev, a_prior, clean.q, clean.y, problem.w)
     args = dict(problem.args(idx, 0.0, np.asarray(a_prior)), w=jnp.asarray(problem.w / max(1.0, np.sqrt(np.mean(r0**2)))))
-    settings = core.Settings(solver, max_steps, 1e-8, 1e-10)
+    settings = core.Settings(solver, max_steps)
     keys = jax.random.split(jax.random.PRNGKey(seed), runs)
     gen = functools.partial(_noisy_batch, robot, dev, jnp.asarray(a_true), dev.nominal, jnp.asarray(clean.q),
                             s_q=s_q, s_p=s_p, s_r=s_r)
