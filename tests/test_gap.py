@@ -108,22 +108,24 @@ def test_diverged_refit_is_flagged_not_averaged(monkeypatch):
     """Fault injection: the refit of fold 2 returns a geometry 1 m off and the all-data refit NaN. Both are
     flagged with their reason, replaced by their baselines (fold 2's held-out samples are left out of the scores),
     the noise floor comes from the baseline fit, every reported number stays finite and the verdict is unchanged."""
-    from jaxcal.gap import fit as gap_fit
+    from jaxcal.fit import core
 
     robot_name, device, direction = CASES["gear"]
     robot, data, _ = _case(robot_name, device, direction)
     clean = jc.gap.diagnose(robot, data)
     calls = []
-    solve = gap_fit.solve_folds
+    solve = core.solve_batch
 
     def corrupt_refit(*args, **kwargs):
-        xs, ok, steps = solve(*args, **kwargs)
+        xs, ok, steps, cost, dt = solve(*args, **kwargs)
         calls.append(1)
-        if len(calls) == 1:  # the baseline is the calibration core's; the first call here is the refit of the selected model
-            xs = xs.at[1, 0].add(1.0).at[-1].set(np.nan)
-        return xs, ok, steps
+        if len(calls) == 1:  # the baseline is core.calibrate (no batch); the first batch is the refit of the selected model
+            xs = np.array(xs)
+            xs[1, 0] += 1.0
+            xs[-1] = np.nan
+        return xs, ok, steps, cost, dt
 
-    monkeypatch.setattr(gap_fit, "solve_folds", corrupt_refit)
+    monkeypatch.setattr(core, "solve_batch", corrupt_refit)
     d = jc.gap.diagnose(robot, data)
     assert [f["fit"] for f in d.diverged] == ["fold 2", "all data"], d.diverged
     assert "sane box" in d.diverged[0]["reason"] and "non-finite" in d.diverged[1]["reason"]
