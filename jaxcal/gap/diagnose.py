@@ -418,8 +418,8 @@ def fit_baselines(robot, data: Dataset, prep: Prepared, settings: core.Settings)
 # ---- stage 3: candidates and their separability ----------------------------------------------------------------------
 @dataclasses.dataclass
 class Linear:
-    """Residuals r (folds + 1, N*m) and Jacobians J (folds + 1, N*m, P) at each baseline; linearised joint fits
-    of a column set: held-out SSE over the folds and the all-data RSS."""
+    """Residuals r (folds + 1, N*m) at each baseline and the Jacobian J (N*m, P) at the all-data baseline, which
+    every fold shares; linearised joint fits of a column set: held-out SSE over the folds and the all-data RSS."""
 
     prep: Prepared
     r: np.ndarray
@@ -433,20 +433,28 @@ class Linear:
         sse, sse_pos = 0.0, 0.0
         for b in range(p.folds):
             test = valid & (fold == b)
-            d = _lstsq_step(self.J[b], self.r[b], cols, np.flatnonzero(valid & (fold != b)))
-            h = self.r[b] + self.J[b][:, cols] @ d
+            d = _lstsq_step(self.J, self.r[b], cols, np.flatnonzero(valid & (fold != b)))
+            h = self.r[b] + self.J[:, cols] @ d
             sse += float(np.sum(h[test] ** 2))
             sse_pos += float(np.sum(h[test & p.pos_rows] ** 2))
         full = np.flatnonzero(valid)
-        d = _lstsq_step(self.J[p.folds], self.r[p.folds], cols, full)
-        rss = float(np.sum((self.r[p.folds] + self.J[p.folds][:, cols] @ d)[full] ** 2))
+        d = _lstsq_step(self.J, self.r[p.folds], cols, full)
+        rss = float(np.sum((self.r[p.folds] + self.J[:, cols] @ d)[full] ** 2))
         return sse, sse_pos, rss
 
 
 def linearise(prep: Prepared, base: Baseline) -> Linear:
-    """Weighted residuals and their Jacobians in every parameter at each fold's baseline."""
-    r, J = gf.jacobians(jnp.asarray(base.xs), *prep.arrays(), base.weights(prep), model=prep.model)
-    return Linear(prep, np.asarray(r), np.asarray(J))
+    """Weighted residuals at each fold's baseline, and their Jacobian in every parameter at the all-data baseline.
+
+    One Jacobian for every fold: the folds' baselines differ from the all-data one by the noise-level scatter
+    of a fit on 1 - 1/k of the samples, which changes J only to second order in the linearised fits, while
+    one (N*m, P) Jacobian per fold cost k + 1 times the time and the memory (2500 pose samples, P = 117:
+    six vmapped Jacobians held ~1.3 GB of forward-mode intermediates)."""
+    qj, yj, cj = prep.arrays()
+    w = base.weights(prep)
+    r = np.asarray(gf.residual_batch(jnp.asarray(base.xs), qj, yj, cj, w, model=prep.model)).reshape(prep.folds + 1, -1)
+    _, J = gf.jacobians(jnp.asarray(base.xs[prep.folds:]), qj, yj, cj, w, model=prep.model)
+    return Linear(prep, r, np.asarray(J[0]))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -465,7 +473,7 @@ def separable_variants(prep: Prepared, lin: Linear, base: Baseline, effects) -> 
     after projecting out the geometry columns (all data): relative norm |E - Q Q^T E| / |E| > SEPARABLE_TOL,
     then a base set of those. Also {effect: why it is not a candidate} (a covariate missing, no parameters)."""
     model = prep.model
-    Jall = lin.J[prep.folds][prep.valid_rows]
+    Jall = lin.J[prep.valid_rows]
     Qg = scipy.linalg.qr(Jall[:, base.estimated], mode="economic")[0]
     variants, not_candidates = [], {}
     for eff in effects:
@@ -637,7 +645,7 @@ def refit(prep: Prepared, base: Baseline, lin: Linear, sel: Selection, settings:
     x_try = base.xs.copy()
     for b in range(folds + 1):
         train = np.flatnonzero(np.repeat(prep.train(b), prep.m))
-        x_try[b, cols] += scale[cols] * _prior_step(lin.J[b], lin.r[b], cols, train, scale, prior)
+        x_try[b, cols] += scale[cols] * _prior_step(lin.J, lin.r[b], cols, train, scale, prior)
     x0s = _lower_cost_start(x_try, base.xs, qj, yj, cj, prep.fold_weights(base.sigma), model)
     problem = refit_problem(prep, base)
     args = problem.basis_args(cols, K, prior, base.xs, prep.fold_weights(base.sigma))
@@ -763,7 +771,7 @@ def locate(prep: Prepared, base: Baseline, lin: Linear, ho: Heldout, data: Datas
     loads, tips = np.asarray(loads)[:n], np.asarray(tips)[:n]
     jn = model.robot.joint_names
     bases = wh.feature_bases(data.q, model.revolute, jn, loads, tips, data.covariates)
-    motion = joint_motion(model, lin.J[prep.folds], input_basis(model, data.q, prep.cov[:n]), n, prep.npad, m)
+    motion = joint_motion(model, lin.J, input_basis(model, data.q, prep.cov[:n]), n, prep.npad, m)
     directions = {f"joint angle {jn[j]}": motion[:, :, j] for j in range(model.robot.n_inputs)}
     s = ho.scored
     feats_base = wh.decompose(ho.oof_base, bases, tips, directions, seed=seed)
