@@ -105,7 +105,14 @@ def _warn(text) -> None:
 DEFAULTS = {"holdout": 0.25, "seed": 0, "solver": "lm", "out": "calib-output", "sigma_position": 1e-3,
             "sigma_orientation": 1e-3, "max_steps": 200}
 JOB_KEYS = ("robot", "data", "base", "tip", "out", "device", "marker", "joints", "length_unit", "angle_unit", "holdout",
-            "seed", "solver", "free", "known", "sigma_position", "sigma_orientation", "max_steps")
+            "seed", "solver", "free", "known", "sigma_position", "sigma_orientation", "max_steps", "rtol", "atol")
+
+
+def tolerances(options) -> dict:
+    """{"rtol": ..., "atol": ...} of the solver tolerances given (dict or argparse namespace); the others keep
+    the calibration core's defaults (`core.Settings`)."""
+    get = options.get if isinstance(options, dict) else lambda k: getattr(options, k, None)
+    return {k: get(k) for k in ("rtol", "atol") if get(k) is not None}
 
 
 def check_options(given: dict) -> None:
@@ -210,7 +217,8 @@ def _calibrate(args) -> int:
             with _stage(prog, f"identifying {robot.name} on {len(data)} samples (compiles the solver on first use)"):
                 res = run_job(robot, data, holdout=job["holdout"], seed=job["seed"], solver=job["solver"], free=free,
                               known=tuple(job.get("known") or ()), sigma_position=job["sigma_position"],
-                              sigma_orientation=job["sigma_orientation"], max_steps=job["max_steps"])
+                              sigma_orientation=job["sigma_orientation"], max_steps=job["max_steps"],
+                              **tolerances(job))
             add_data_warnings(res.summary, data_warnings)
             with _stage(prog, f"writing the report to {out}"), cleanup_on_signals():
                 write_job(out, res, lambda path: save_robot(robot, path, res.fit.a), robot_file)
@@ -355,7 +363,9 @@ def _diagnose(args) -> int:
                                    length_unit=args.length_unit, angle_unit=args.angle_unit, prismatic=prismatic_joints(robot))
         check_not_input(os.path.join(args.out, "diagnosis.json"), [args.robot, args.data])
         with _progress(not args.quiet) as prog, _stage(prog, f"diagnosing the sim-to-real gap of {robot.name}"):
-            d = jc.gap.diagnose(robot, data, folds=args.folds, seed=args.seed, max_steps=args.max_steps)
+            d = jc.gap.diagnose(robot, data, folds=args.folds, seed=args.seed, max_steps=args.max_steps, solver=args.solver,
+                                sigma_position=args.sigma_position, sigma_orientation=args.sigma_orientation,
+                                **tolerances(args))
             payload = d.to_dict()
         print(d.report())
         os.makedirs(args.out, exist_ok=True)
@@ -382,7 +392,8 @@ def _cv(args) -> int:
             check_not_input(args.json, [args.robot, args.data])
         with _progress(not args.quiet) as prog, _stage(prog, f"{args.folds}-fold cross-validation of {robot.name}"):
             res = cross_validate(robot, data, folds=args.folds, seed=args.seed, sigma_position=args.sigma_position,
-                                 sigma_orientation=args.sigma_orientation, max_steps=args.max_steps)
+                                 sigma_orientation=args.sigma_orientation, max_steps=args.max_steps, solver=args.solver,
+                                 **tolerances(args))
     except _input_errors() + (ValueError,) as exc:
         return _fail(exc)
     print(res.report())
@@ -483,6 +494,16 @@ def _robot_args(p):
     p.add_argument("--tip", help="URDF: last link of the chain")
 
 
+def _solver_args(p, solver_default="lm", max_steps_default=200):
+    """The calibration core's solver settings, the same on every command that fits (`core.Settings`)."""
+    p.add_argument("--solver", choices=tuple(SOLVERS), default=solver_default,
+                   help=f"least-squares solver (default {solver_default or 'lm'})")
+    p.add_argument("--max-steps", dest="max_steps", type=positive_int, default=max_steps_default,
+                   help="solver step limit (default 200); a diagnosis whose baseline stops at it says so and names no effect")
+    p.add_argument("--rtol", type=positive_float, help="solver relative tolerance (default: the core's)")
+    p.add_argument("--atol", type=positive_float, help="solver absolute tolerance (default: the core's)")
+
+
 def _data_args(p):
     p.add_argument("--device", choices=("position", "pose"), help="reading type (default: from the CSV columns)")
     p.add_argument("--marker", help="marker number when the CSV has x1.., x2.. columns (default: the first)")
@@ -542,13 +563,12 @@ def build_parser() -> argparse.ArgumentParser:
     _data_args(c)
     c.add_argument("--holdout", type=fraction, help="fraction of samples held out of the fit (default 0.25)")
     c.add_argument("--seed", type=int, help="seed of the held-out split (default 0)")
-    c.add_argument("--solver", choices=tuple(SOLVERS))
     c.add_argument("--free", nargs="+", help="robot parameters to estimate, names or patterns such as '*.offset' "
                    "(default: all free; the base set of them is identified)")
     c.add_argument("--known", nargs="+", help="device parameters (or prefixes dev, tool) taken as known")
     c.add_argument("--sigma-position", dest="sigma_position", type=positive_float, help="position noise in m (residual weight)")
     c.add_argument("--sigma-orientation", dest="sigma_orientation", type=positive_float, help="orientation noise in rad")
-    c.add_argument("--max-steps", dest="max_steps", type=positive_int, help="solver step limit (default 200)")
+    _solver_args(c, None, None)  # defaults from the job file, else DEFAULTS
     c.add_argument("--accept-warnings", dest="accept_warnings", action="store_true",
                    help="exit 0 even when the result carries health warnings (default: exit 1)")
     _quiet(c)
@@ -591,7 +611,10 @@ def build_parser() -> argparse.ArgumentParser:
     _data_args(d)
     d.add_argument("--folds", type=folds_int, default=5, help="cross-validation folds (default 5)")
     d.add_argument("--seed", type=int, default=0, help="seed of the fold split (default 0)")
-    d.add_argument("--max-steps", dest="max_steps", type=positive_int, default=200, help="solver step limit (default 200)")
+    _solver_args(d)
+    d.add_argument("--sigma-position", dest="sigma_position", type=positive_float,
+                   help="instrument noise in m per axis: the noise floor and the noise test when there are no repeated poses")
+    d.add_argument("--sigma-orientation", dest="sigma_orientation", type=positive_float, help="instrument orientation noise in rad")
     _quiet(d)
     d.set_defaults(func=_diagnose)
 
@@ -603,7 +626,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--seed", type=int, default=0, help="seed of the fold split (default 0)")
     v.add_argument("--sigma-position", dest="sigma_position", type=positive_float, default=1e-3, help="position noise in m")
     v.add_argument("--sigma-orientation", dest="sigma_orientation", type=positive_float, default=1e-3, help="orientation noise in rad")
-    v.add_argument("--max-steps", dest="max_steps", type=positive_int, default=200, help="solver step limit (default 200)")
+    _solver_args(v)
     v.add_argument("--json", help="write the per-fold results as JSON here")
     v.add_argument("--accept-warnings", dest="accept_warnings", action="store_true",
                    help="exit 0 even when a fold's fit carries health warnings (default: exit 1)")

@@ -16,6 +16,8 @@
     sigma_position: 1.0e-4     # m, residual weight 1/sigma
     sigma_orientation: 1.0e-3  # rad
     max_steps: 200
+    rtol: 1.0e-8               # solver tolerances (default: the calibration core's)
+    atol: 1.0e-10
 
 Errors name the file and the key: unknown keys (with the closest known key), keys given twice (YAML;
 TOML refuses them itself), names given twice in `joints`, `free` or `known`, wrong values.
@@ -69,6 +71,8 @@ SCHEMA = {
     "sigma_position": (lambda v: _number(v) and v > 0, "a positive number (m)"),
     "sigma_orientation": (lambda v: _number(v) and v > 0, "a positive number (rad)"),
     "max_steps": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v > 0, "a positive integer"),
+    "rtol": (lambda v: _number(v) and v > 0, "a positive number"),
+    "atol": (lambda v: _number(v) and v > 0, "a positive number"),
 }
 PATH_KEYS = ("robot", "data", "out")
 UNITS = {"length": ("m", "mm"), "angle": ("rad", "deg")}

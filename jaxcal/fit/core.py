@@ -17,6 +17,11 @@ of slicing keeps one shape for every stage (frames-only fit, base-set fit, bias 
 so one compiled solver serves them all; a sample weight of 0 removes a sample exactly, so a
 fold is a weight mask and gives the same optimum as the subset.
 
+The data rows come from a residual model (`Problem.model`): the robot measured by the device
+(`RobotDevice`, every client but one), or any object with the same interface (names, units, priority,
+x_scale(), residuals(x, q, y, cov, w) with per-sample covariates cov): the gap diagnosis' refits pass
+its `GapModel` (geometry, device and effect parameters), so they run on this solve path too.
+
 The start is the same for every robot and device (`start`): the device frame by closed-form
 rigid registration of the readings onto the nominal model's points (any rotation, any distance),
 kept only where it lowers the cost, then the frames-only fit of every free device parameter.
@@ -90,24 +95,58 @@ def residuals(robot: Robot, device: Device, a_full, q, y, w):
     return jax.vmap(device.residual)(pred, y) * w
 
 
-def stacked(robot: Robot, device: Device, x, args):
-    """The stacked residual r(x) of the module docstring; `args` holds the arrays of a `Problem`."""
+@dataclasses.dataclass(frozen=True)
+class RobotDevice:
+    """The residual model of a robot measured by a device: x = [robot parameters, device parameters], no
+    covariates. Hashes by its robot and device (a static jit argument: one compiled solver per pair)."""
+
+    robot: Robot
+    device: Device
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self.robot.names) + tuple(self.device.names)
+
+    @property
+    def units(self) -> tuple[str, ...]:
+        return tuple(self.robot.units) + tuple(self.device.units)
+
+    @property
+    def priority(self) -> np.ndarray:
+        return np.concatenate([self.robot.priority, self.device.priority])
+
+    def x_scale(self) -> np.ndarray:
+        return x_scale(self.units)
+
+    def residuals(self, x, q, y, cov, w):
+        """w * (y - read(forward(a, q), d)) (N, m); cov is ignored."""
+        return residuals(self.robot, self.device, x, q, y, w)
+
+
+def model_stacked(model, x, args):
+    """The stacked residual r(x) of the module docstring for a residual model; `args` holds the arrays of a
+    `Problem` (mu: a number, or one per entry of x)."""
     m = args["mask"]
     a_full = jnp.where(m > 0, x, args["a_ref"])
-    r = residuals(robot, device, a_full, args["q"], args["y"], args["w"]).reshape(-1)
+    r = model.residuals(a_full, args["q"], args["y"], args["cov"], args["w"]).reshape(-1)
     scaled = (x - args["a_ref"]) / args["x_scale"]
     over = jnp.maximum(x - args["ub"], 0.0) + jnp.maximum(args["lb"] - x, 0.0)
     return jnp.concatenate([r, jnp.sqrt(args["mu"]) * m * scaled + (1.0 - m) * scaled, 1e6 * m * over / args["x_scale"]])
 
 
-def stacked_scaled(robot: Robot, device: Device, z, args):
-    """`stacked` in the scaled unknowns z = (x - a_ref) / x_scale, the variables the solver works in.
+def stacked(robot: Robot, device: Device, x, args):
+    """The stacked residual r(x) of the module docstring; `args` holds the arrays of a `Problem`."""
+    return model_stacked(RobotDevice(robot, device), x, args)
+
+
+def stacked_scaled(model, z, args):
+    """`model_stacked` in the scaled unknowns z = (x - a_ref) / x_scale, the variables the solver works in.
 
     Levenberg-Marquardt damps every unknown alike (optimistix adds lambda I), so in raw units a metre,
     a radian and a gain of 1 would be one step size; in z one unit is a typical change of each entry
     (MINPACK's diagonal scaling with fixed scales). On the Delta (seed 004 Table 4.6: lengths of 0.1-0.4 m,
     angles, 9 tracker-frame entries) raw units took > 200 steps where z takes tens."""
-    return stacked(robot, device, args["a_ref"] + args["x_scale"] * z, args)
+    return model_stacked(model, args["a_ref"] + args["x_scale"] * z, args)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,19 +165,53 @@ class Settings:
     atol: float = 1e-8
 
 
-def _solve_one(x0, args, robot, device, settings: Settings):
-    fn = functools.partial(stacked_scaled, robot, device)
+def stacked_basis(model, z, args):
+    """The stacked residual in the unknowns z (K,) of a basis S (P, K) with orthogonal columns: x = a_ref + S (m z).
+
+    For clients that estimate a few of many parameters (the gap refits: geometry and the selected effects of
+    a model with every effect's parameters): each column of S picks one entry at its typical size, so the
+    Jacobian has K columns, not P; m (K,) is 0 on unused (padding) columns, which the rows (1 - m) z pin at 0.
+    Rows: the data rows at x, sqrt(mu) m z (mu a number or (K,)), (1 - m) z, and the bound penalty
+    1e6 max(x - ub, lb - x, 0) / x_scale on the entries S moves."""
+    m = args["mask"]
+    x = args["a_ref"] + args["S"] @ (m * z)
+    r = model.residuals(x, args["q"], args["y"], args["cov"], args["w"]).reshape(-1)
+    moved = jnp.any(args["S"] != 0, axis=1)
+    over = jnp.maximum(x - args["ub"], 0.0) + jnp.maximum(args["lb"] - x, 0.0)
+    return jnp.concatenate([r, jnp.sqrt(args["mu"]) * m * z + (1.0 - m) * z, 1e6 * moved * over / args["x_scale"]])
+
+
+def basis_coordinates(S, dx):
+    """z with S z = dx for the part of dx in the span of S's orthogonal columns: z_k = s_k . dx / |s_k|^2."""
+    return (S.T @ dx) / jnp.maximum(jnp.sum(S**2, axis=0), 1e-300)
+
+
+def solver_settings(solver="lm", max_steps: int | None = None, rtol: float | None = None, atol: float | None = None) -> Settings:
+    """`Settings` with the given fields, the defaults of `Settings` for those left None (CLI and API callers)."""
+    given = dict(solver=solver, max_steps=max_steps, rtol=rtol, atol=atol)
+    return dataclasses.replace(Settings(), **{k: v for k, v in given.items() if v is not None})
+
+
+def _solve_one(x0, args, model, settings: Settings):
+    """One LM run from x0: in z = (x - a_ref) / x_scale (`stacked_scaled`), or in the basis args["S"] when
+    args has one (`stacked_basis`). Returns (x, converged, steps, final cost)."""
     slv = make_solver(settings.solver, settings.rtol, settings.atol)
-    z0 = (x0 - args["a_ref"]) / args["x_scale"]
+    if "S" in args:
+        fn = functools.partial(stacked_basis, model)
+        z0 = basis_coordinates(args["S"], x0 - args["a_ref"])
+        to_x = lambda z: args["a_ref"] + args["S"] @ (args["mask"] * z)  # noqa: E731
+    else:
+        fn = functools.partial(stacked_scaled, model)
+        z0 = (x0 - args["a_ref"]) / args["x_scale"]
+        to_x = lambda z: args["a_ref"] + args["x_scale"] * z  # noqa: E731
     sol = optx.least_squares(fn, slv, z0, args, max_steps=settings.max_steps, throw=False)
-    x = args["a_ref"] + args["x_scale"] * sol.value
-    return x, sol.result == optx.RESULTS.successful, sol.stats["num_steps"], jnp.sum(fn(sol.value, args) ** 2)
+    return to_x(sol.value), sol.result == optx.RESULTS.successful, sol.stats["num_steps"], jnp.sum(fn(sol.value, args) ** 2)
 
 
-@functools.partial(jax.jit, static_argnames=("robot", "device", "settings", "batched"))
-def _solve_jit(x0, args, *, robot, device, settings, batched):
+@functools.partial(jax.jit, static_argnames=("model", "settings", "batched"))
+def _solve_jit(x0, args, *, model, settings, batched):
     """One solve, or a vmapped batch: `batched` names the entries of args (and "x0") with a leading batch axis."""
-    one = functools.partial(_solve_one, robot=robot, device=device, settings=settings)
+    one = functools.partial(_solve_one, model=model, settings=settings)
     if not batched:
         return one(x0, args)
     axes = {k: (0 if k in batched else None) for k in args}
@@ -149,42 +222,58 @@ _COMPILED: collections.OrderedDict = collections.OrderedDict()
 _COMPILED_MAX = 64  # compiled solvers kept per process (least recently used first out)
 
 
-def compiled_solver(x0, args, robot, device, settings: Settings, batched=()):
-    """(executable, seconds spent compiling: 0 when reused). One compile per robot, device, settings,
+def compiled_model_solver(x0, args, model, settings: Settings, batched=()):
+    """(executable, seconds spent compiling: 0 when reused). One compile per residual model, settings,
     argument shapes and placement (arrays committed to another JAX device get their own executable);
     at most _COMPILED_MAX are kept (robots hash by identity, so the cache is bounded)."""
     shapes = jax.tree_util.tree_map(lambda v: (jnp.shape(v), jnp.result_type(v)), (x0, args))
     placed = [str(v.sharding) for v in jax.tree_util.tree_leaves((x0, args)) if isinstance(v, jax.Array) and v.committed]
-    key = (robot, device, settings, tuple(batched), str(shapes), tuple(sorted(set(placed))))
+    key = (model, settings, tuple(batched), str(shapes), tuple(sorted(set(placed))))
     if key in _COMPILED:
         _COMPILED.move_to_end(key)
         return _COMPILED[key], 0.0
     t = time.perf_counter()
-    exe = _solve_jit.lower(x0, args, robot=robot, device=device, settings=settings, batched=tuple(batched)).compile()
+    exe = _solve_jit.lower(x0, args, model=model, settings=settings, batched=tuple(batched)).compile()
     _COMPILED[key] = exe
     if len(_COMPILED) > _COMPILED_MAX:
         _COMPILED.popitem(last=False)
     return exe, time.perf_counter() - t
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1))
-def _residual_rows(robot, device, a_full, q, y, w):
-    return residuals(robot, device, a_full, q, y, w)
+def compiled_solver(x0, args, robot, device, settings: Settings, batched=()):
+    """`compiled_model_solver` of the robot measured by the device."""
+    return compiled_model_solver(x0, args, RobotDevice(robot, device), settings, batched)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1))
-def _jacobian(robot, device, a_full, q, y, w):
-    return jax.jacfwd(lambda a: residuals(robot, device, a, q, y, w).reshape(-1))(a_full)
+@functools.partial(jax.jit, static_argnums=(0,))
+def _model_rows(model, x, q, y, cov, w):
+    return model.residuals(x, q, y, cov, w)
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
+def _model_jacobian(model, x, q, y, cov, w):
+    return jax.jacfwd(lambda a: model.residuals(a, q, y, cov, w).reshape(-1))(x)
+
+
+def model_residuals(model, x, q, y, cov, w) -> np.ndarray:
+    """The residual model's weighted residuals (N, m) at x, as a numpy array."""
+    return np.asarray(_model_rows(model, *(jnp.asarray(v) for v in (x, q, y, cov, w))))
+
+
+def no_covariates(n: int) -> np.ndarray:
+    """The (N, 0) covariate matrix of a model that takes none."""
+    return np.zeros((n, 0))
 
 
 def weighted_residuals(robot, device, a_full, q, y, w) -> np.ndarray:
     """w * (y - read(a_full, q)) as a numpy array (N, m)."""
-    return np.asarray(_residual_rows(robot, device, jnp.asarray(a_full), jnp.asarray(q), jnp.asarray(y), jnp.asarray(w)))
+    return model_residuals(RobotDevice(robot, device), a_full, q, y, no_covariates(len(q)), w)
 
 
 def jacobian(robot, device, a_full, q, y, w) -> np.ndarray:
     """d(weighted residual)/d(a_full), (N*m, P), by forward-mode autodiff."""
-    return np.asarray(_jacobian(robot, device, jnp.asarray(a_full), jnp.asarray(q), jnp.asarray(y), jnp.asarray(w)))
+    return np.asarray(_model_jacobian(RobotDevice(robot, device), *(jnp.asarray(v) for v in
+                                                                     (a_full, q, y, no_covariates(len(q)), w))))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -193,7 +282,10 @@ class Problem:
 
     q (N, n_inputs), y (N, *reading_shape); w (N, m) the weight 1/sigma of every residual component
     times the sample weight (0 removes a sample); free: mask over the full vector of what may be
-    estimated; a_ref: the prior (full vector); bounds lb, ub (full vector, +-inf where none).
+    estimated; a_ref: the prior (full vector); bounds lb, ub (full vector, +-inf where none);
+    cov (N, c): per-sample covariates of the residual model (N, 0 when it takes none); model: the
+    residual model (default `RobotDevice(robot, device)`; the gap refits give their `GapModel`, whose
+    full vector appends effect parameters to the robot's and the device's).
     """
 
     robot: Robot
@@ -205,18 +297,31 @@ class Problem:
     a_ref: np.ndarray
     lb: np.ndarray
     ub: np.ndarray
+    cov: np.ndarray | None = None
+    model: object = None
+
+    def __post_init__(self):
+        if self.model is None:
+            object.__setattr__(self, "model", RobotDevice(self.robot, self.device))
+        if self.cov is None:
+            object.__setattr__(self, "cov", no_covariates(len(self.q)))
 
     @property
     def names(self) -> tuple[str, ...]:
-        return tuple(self.robot.names) + tuple(self.device.names)
+        return tuple(self.model.names)
 
     @property
     def units(self) -> tuple[str, ...]:
-        return tuple(self.robot.units) + tuple(self.device.units)
+        return tuple(self.model.units)
 
     @property
     def priority(self) -> np.ndarray:
-        return np.concatenate([self.robot.priority, self.device.priority])
+        return np.asarray(self.model.priority)
+
+    @property
+    def x_scale(self) -> np.ndarray:
+        """Typical size of a change of each entry of the full vector (the solver's unit in z)."""
+        return np.asarray(self.model.x_scale(), float)
 
     @property
     def used(self) -> np.ndarray:
@@ -226,28 +331,56 @@ class Problem:
     def with_weights(self, w) -> "Problem":
         return dataclasses.replace(self, w=np.asarray(w, float))
 
+    def residuals(self, x) -> np.ndarray:
+        """Weighted residuals (N, m) at the full vector x."""
+        return model_residuals(self.model, x, self.q, self.y, self.cov, self.w)
+
+    def jacobian(self, x) -> np.ndarray:
+        """d(weighted residual)/dx (N*m, P) at the full vector x, by forward-mode autodiff."""
+        return np.asarray(_model_jacobian(self.model, *(jnp.asarray(v) for v in (x, self.q, self.y, self.cov, self.w))))
+
     def args(self, estimated, mu, ref) -> dict:
-        """Solver arguments: estimate the indices `estimated`, bias mu toward `ref`. The data weights are
-        divided by the RMS weighted residual over the used samples at `ref`: the optimum is unchanged and
-        LM starts with an O(1) residual (optimistix's trust region took 4 to 34 iterations on the same
-        problem depending on that scale); samples of weight 0 do not enter that RMS, so a fold (weight
-        mask) and the subset it selects see the same scaled problem."""
+        """Solver arguments: estimate the indices `estimated`, bias mu (a number, or one per entry) toward
+        `ref`. The data weights are divided by the RMS weighted residual over the used samples at `ref`: the
+        optimum is unchanged and LM starts with an O(1) residual (optimistix's trust region took 4 to 34
+        iterations on the same problem depending on that scale); samples of weight 0 do not enter that RMS,
+        so a fold (weight mask) and the subset it selects see the same scaled problem."""
         mask = np.zeros(len(self.names))
         mask[np.asarray(estimated, int)] = 1.0
-        r = weighted_residuals(self.robot, self.device, ref, self.q, self.y, self.w)
+        r = self.residuals(ref)
         used = self.used
         rms = np.sqrt(np.sum(r[used] ** 2) / max(r[used].size, 1)) if used.any() else 1.0
         return dict(a_ref=jnp.asarray(ref), mask=jnp.asarray(mask), q=jnp.asarray(self.q), y=jnp.asarray(self.y),
-                    w=jnp.asarray(self.w / max(rms, 1e-12)), mu=jnp.float64(mu), x_scale=jnp.asarray(x_scale(self.units)),
-                    lb=jnp.asarray(self.lb), ub=jnp.asarray(self.ub))
+                    cov=jnp.asarray(self.cov), w=jnp.asarray(self.w / max(rms, 1e-12)), mu=jnp.asarray(mu, jnp.float64),
+                    x_scale=jnp.asarray(self.x_scale), lb=jnp.asarray(self.lb), ub=jnp.asarray(self.ub))
+
+    def batch_args(self, estimated, mu, refs, weights) -> dict:
+        """Arguments of a batch of solves of this problem that differ in their prior refs (B, P) and data
+        weights (B, N, m) (folds as weight masks), each scaled as `args` scales one; "a_ref" and "w" carry the
+        batch axis (`solve_batch(..., batched=("x0", "a_ref", "w"))`)."""
+        each = [self.with_weights(w).args(estimated, mu, ref) for ref, w in zip(refs, weights)]
+        return dict(each[0], a_ref=jnp.stack([a["a_ref"] for a in each]), w=jnp.stack([a["w"] for a in each]))
+
+    def basis_args(self, columns, K: int, mu, refs, weights) -> dict:
+        """`batch_args` for a solve in the basis S (P, K) that moves the entries `columns` at their typical size
+        (`stacked_basis`; K >= len(columns), the rest padding), mu a number or one per column."""
+        S = np.zeros((len(self.names), K))
+        cols = np.asarray(columns, int)
+        S[cols, np.arange(len(cols))] = self.x_scale[cols]
+        mask = (np.arange(K) < len(cols)).astype(float)
+        mu_k = np.zeros(K)
+        mu_k[:len(cols)] = mu
+        args = self.batch_args(cols, 0.0, refs, weights)
+        return dict(args, S=jnp.asarray(S), mask=jnp.asarray(mask), mu=jnp.asarray(mu_k))
 
     def cost(self, a_full) -> float:
-        r = weighted_residuals(self.robot, self.device, a_full, self.q, self.y, self.w)
-        return float(np.sum(r**2))
+        return float(np.sum(self.residuals(a_full) ** 2))
 
 
-def make_problem(robot: Robot, device: Device, q, y, *, weights, free, a_ref, bounds=None, sample_weights=None) -> Problem:
-    """A `Problem`: weights (m,) per residual component, optionally times sample_weights (N,)."""
+def make_problem(robot: Robot, device: Device, q, y, *, weights, free, a_ref, bounds=None, sample_weights=None,
+                 model=None, cov=None) -> Problem:
+    """A `Problem`: weights (m,) per residual component, optionally times sample_weights (N,); model and cov
+    (N, c): a residual model other than the robot measured by the device, and its per-sample covariates."""
     q, y = np.asarray(q, float), np.asarray(y, float)
     w = np.broadcast_to(np.asarray(weights, float), (len(q), np.size(weights))).copy()
     if sample_weights is not None:
@@ -255,12 +388,13 @@ def make_problem(robot: Robot, device: Device, q, y, *, weights, free, a_ref, bo
         if sw.shape != (len(q),) or not np.all(np.isfinite(sw)) or np.any(sw < 0):
             raise ValueError(f"sample_weights must be {len(q)} finite non-negative numbers")
         w = sw[:, None] * w
-    names = tuple(robot.names) + tuple(device.names)
+    names = tuple((RobotDevice(robot, device) if model is None else model).names)
     lb, ub = np.full(len(names), -np.inf), np.full(len(names), np.inf)
     check_names(list(bounds or {}), names, "bounds: parameter")  # UnknownNameError (a KeyError), closest names named
     for n, (lo, hi) in (bounds or {}).items():
         lb[names.index(n)], ub[names.index(n)] = lo, hi
-    return Problem(robot, device, q, y, w, np.asarray(free, bool), np.asarray(a_ref, float), lb, ub)
+    return Problem(robot, device, q, y, w, np.asarray(free, bool), np.asarray(a_ref, float), lb, ub,
+                   None if cov is None else np.asarray(cov, float), model)
 
 
 # -- the start ------------------------------------------------------------------------------------
@@ -339,7 +473,7 @@ def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, 
     ref = x0 if ref is None else ref
     args = problem.args(estimated, mu, ref)
     x0 = jnp.asarray(x0, jnp.float64)
-    exe, dt = compiled_solver(x0, args, problem.robot, problem.device, settings)
+    exe, dt = compiled_model_solver(x0, args, problem.model, settings)
     x, ok, steps, cost = exe(x0, args)
     x = np.where(np.asarray(args["mask"]) > 0, np.asarray(x), np.asarray(ref))
     return Solution(x, bool(ok), int(steps), float(cost), dt)
@@ -347,8 +481,8 @@ def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, 
 
 def solve_batch(problem: Problem, x0s, args, settings: Settings, batched) -> tuple:
     """A vmapped batch of solves of one problem's structure: `batched` names the leading-axis entries of
-    args (and "x0" for a batch of starts). Returns (x (B, P), ok (B,), steps (B,), cost (B,), compile_s)."""
-    exe, dt = compiled_solver(x0s, args, problem.robot, problem.device, settings, batched)
+    args (and "x0" for a batch of starts; `Problem.batch_args` for folds with their own priors). Returns (x (B, P), ok (B,), steps (B,), cost (B,), compile_s)."""
+    exe, dt = compiled_model_solver(x0s, args, problem.model, settings, batched)
     x, ok, steps, cost = exe(x0s, args)
     return np.asarray(x), np.asarray(ok), np.asarray(steps), np.asarray(cost), dt
 
@@ -366,8 +500,8 @@ def frames_estimated(problem: Problem, x) -> np.ndarray:
     cand = np.flatnonzero(problem.free[nr:]) + nr
     if not cand.size:
         return cand
-    J = jacobian(problem.robot, problem.device, x, problem.q, problem.y, problem.w)[:, cand]
-    bs = base_set(J * x_scale(problem.units)[cand], problem.priority[cand], c=START_TOL / np.finfo(float).eps)
+    J = problem.jacobian(x)[:, cand]
+    bs = base_set(J * problem.x_scale[cand], problem.priority[cand], c=START_TOL / np.finfo(float).eps)
     return np.sort(cand[bs.independent])
 
 
@@ -442,7 +576,7 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
     t0 = time.perf_counter()
     x_frames, frames_sol, registered = start(problem, settings)
     compile_s = 0.0 if frames_sol is None else frames_sol.compile_s
-    J0 = jacobian(problem.robot, problem.device, x_frames, problem.q, problem.y, problem.w)
+    J0 = problem.jacobian(x_frames)
     est, undetermined, no_effect, regrouped = choose_estimated(problem, J0, base, base_tol)
     x, iterations, converged = x_frames, 0, True
     for mu in bias_schedule(bias):
@@ -450,7 +584,7 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
             args = problem.args(est, mu, x_frames)
             rng = np.random.default_rng(seed)
             spread = np.zeros((multistart, len(x)))
-            spread[:, est] = x_scale(problem.units)[est] * rng.uniform(-1, 1, (multistart, len(est)))
+            spread[:, est] = problem.x_scale[est] * rng.uniform(-1, 1, (multistart, len(est)))
             x0s = jnp.asarray(np.concatenate([x[None], x[None] + spread]))
             xs, oks, steps, costs, dt = solve_batch(problem, x0s, args, settings, ("x0",))
             best = int(np.argmin(np.where(oks, costs, np.inf))) if oks.any() else int(np.argmin(costs))
@@ -461,7 +595,7 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
         x, compile_s = sol.x, compile_s + sol.compile_s
         iterations += sol.steps
         converged = converged and sol.converged
-    J = jacobian(problem.robot, problem.device, x, problem.q, problem.y, problem.w)
+    J = problem.jacobian(x)
     run_s = time.perf_counter() - t0 - compile_s
     frames_ok = True if frames_sol is None else frames_sol.converged
     return Calibration(problem, x, x_frames, est, undetermined, no_effect, regrouped, J, converged, frames_ok, iterations,
@@ -484,6 +618,7 @@ def drop_unclosed(robot: Robot, a0, q) -> np.ndarray:
     return ok
 
 
-__all__ = ["Calibration", "Problem", "SOLVERS", "Settings", "Solution", "calibrate", "choose_estimated", "compiled_solver",
-           "drop_unclosed", "frames_estimated", "jacobian", "make_problem", "make_solver", "registered_frame", "residuals", "rigid_registration",
-           "similarity_registration", "solve", "solve_batch", "stacked", "start", "weighted_residuals", "x_scale"]
+__all__ = ["Calibration", "Problem", "RobotDevice", "SOLVERS", "Settings", "Solution", "calibrate", "choose_estimated",
+           "compiled_model_solver", "compiled_solver", "drop_unclosed", "frames_estimated", "jacobian", "make_problem", "make_solver",
+           "model_residuals", "model_stacked", "no_covariates", "registered_frame", "residuals", "rigid_registration",
+           "similarity_registration", "solve", "solve_batch", "solver_settings", "stacked", "stacked_basis", "stacked_scaled", "start", "weighted_residuals", "x_scale"]

@@ -7,6 +7,8 @@ same solver), and the all-data baseline is `identify` on every sample.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from jaxcal.fit import core
@@ -14,9 +16,10 @@ from jaxcal.fit.identify import residual_weights
 
 
 def baseline_fits(robot, data, train_masks, *, sigma_position: float, sigma_orientation: float,
-                  max_steps: int) -> list[core.Calibration]:
+                  max_steps: int | None = None, settings: core.Settings | None = None) -> list[core.Calibration]:
     """One `core.Calibration` per boolean mask of training samples (N,), as `identify(robot, data.subset(mask),
-    sigma_position=, sigma_orientation=, max_steps=)` would give. Samples whose loops do not close at the
+    sigma_position=, sigma_orientation=, max_steps=)` would give (settings: the solver's; max_steps overrides
+    its step limit). Samples whose loops do not close at the
     nominal parameters are left out of every fold (as `identify` leaves them out)."""
     device = data.device
     closes = core.drop_unclosed(robot, robot.nominal, data.q)
@@ -24,7 +27,9 @@ def baseline_fits(robot, data, train_masks, *, sigma_position: float, sigma_orie
                                 weights=residual_weights(device, sigma_position, sigma_orientation),
                                 free=np.concatenate([robot.free_mask, device.free_mask]),
                                 a_ref=np.concatenate([robot.nominal_np, device.nominal_np]))
-    settings = core.Settings("lm", max_steps)
+    settings = settings or core.Settings()
+    if max_steps is not None:
+        settings = dataclasses.replace(settings, max_steps=max_steps)
     return [core.calibrate(problem.with_weights(problem.w * (np.asarray(m) & closes)[:, None]), settings)
             for m in train_masks]
 

@@ -12,7 +12,8 @@ Method (DESIGN "The sim-to-real gap diagnosis"; issue 7):
    as not separable. Score = held-out log-likelihood gain n/2 ln(SSE_0/SSE_c) minus the number of
    parameters added; significance by the F-test of the nested fit on all data, Bonferroni over
    candidates; BIC reported too. Greedy forward selection adds effects while one is significant.
-3. How far: the selected model is refitted by nonlinear LM on every fold, with a Tikhonov prior
+3. How far: the selected model is refitted by the calibration core's LM (`core.solve_batch`, one
+   vmapped call) on every fold, with a Tikhonov prior
    that holds the geometry and device frame near that fold's baseline (the geometry fitted without
    the effects; mu = PRIOR_MU per typical size, relative to one reading at the baseline RMS), started
    from the Gauss-Newton step of the same regularised objective. A refit that still diverges is
@@ -23,9 +24,11 @@ Method (DESIGN "The sim-to-real gap diagnosis"; issue 7):
    fold) more than DIVERGED_RATIO x the baseline's. Then held-out RMS before and after, the noise
    floor (repeated poses, else the residual of the fit with its degrees of freedom) and
    shrink = (before^2 - after^2) / (before^2 - floor^2), the fraction of the gap closed.
-4. Verdict: "none" when no candidate is significant and the held-out residual has no structure;
-   "unexplained" when structure remains (where.decompose, Bonferroni over features) that the
-   selected effects do not capture; else the first selected effect.
+4. Verdict: "baseline did not converge" when a baseline fit stopped unconverged at the step limit
+   (no effect is named); "none" when no candidate is significant and the held-out residual has no
+   structure; "unexplained" when structure remains (where.decompose, Bonferroni over features; with
+   the instrument's noise figure sigma_position also the chi-square test of the fit residual against
+   it) that the selected effects do not capture; else the first selected effect.
 
 Stages, one function each (`diagnose` runs them in turn): `prepare` (padding, folds, covariates),
 `fit_baselines` (1), `linearise` and `separable_variants` (candidates), `select` (2: ranking and
@@ -44,6 +47,7 @@ import scipy.linalg
 import scipy.stats
 
 from jaxcal.fit.base import base_set
+from jaxcal.fit import core
 from jaxcal.fit.data import Dataset
 from jaxcal.gap import fit as gf
 from jaxcal.gap import where as wh
@@ -113,6 +117,7 @@ class Diagnosis:
     timings: dict
     diverged: list = dataclasses.field(default_factory=list)  # [{"fit": "fold b" | "all data", "reason": ...}] refits flagged
     mass_model: str = ""  # masses loading the gravity effects (compliance, link_bending, gravity-load features)
+    noise_p: float | None = None  # p-value of the all-data fit's residual against the given noise figure (`noise_test`)
     plot_data: dict = dataclasses.field(default_factory=dict, repr=False)  # arrays `plot` draws (see `diagnose`)
 
     def to_dict(self) -> dict:
@@ -126,22 +131,25 @@ class Diagnosis:
             "parameters": self.parameters, "ranking": [c.to_dict() for c in self.ranking],
             "where": self.where, "not_candidates": self.not_candidates, "n_samples": self.n_samples,
             "folds": self.folds, "timings_s": self.timings, "diverged": self.diverged,
-            "mass_model": self.mass_model,
+            "mass_model": self.mass_model, "noise_p": self.noise_p,
         }, default=float))
 
     def report(self) -> str:
         lines = [f"gap diagnosis of {self.robot_name} from {self.n_samples} {self.device_kind} samples ({self.folds}-fold held out)"]
         j = f" at {', '.join(self.joints)}" if self.joints else ""
         lines.append(f"verdict: {self.verdict}{j}")
-        if not self.timings.get("lm_steps", {}).get("baseline_converged", True):
-            lines.append(f"warning: the baseline calibration did not converge in {self.timings['lm_steps']['baseline']} steps: "
-                         "geometry left unfitted reads as structure, so the verdict is unreliable (raise max_steps / --max-steps)")
+        steps = self.timings.get("lm_steps", {})
+        if self.verdict == NOT_CONVERGED:
+            lines.append(f"no effect is named: the baseline calibration ({', '.join(steps.get('baseline_failed', []))}) stopped "
+                         f"unconverged at the step limit ({steps.get('max_steps')} steps); geometry left unfitted reads as an "
+                         "effect or as structure. Raise the step limit (max_steps=, CLI --max-steps) and run it again.")
         lines.append(f"held-out RMS {self.heldout_rms_before:.4g} -> {self.heldout_rms_after:.4g} mm, shrink {100 * self.shrink:.1f} %"
                      f" of the held-out mean square; noise floor {self.noise_floor:.4g} mm ({self.noise_source}),"
                      f" remainder {self.heldout_rms_after / max(self.noise_floor, 1e-300):.2f} x floor")
         if self.selected:
             lines.append("selected (greedy): " + "; ".join(f"{e}{'@' + ','.join(js) if js else ''}" for e, js in self.selected))
-        lines.append(f"structure left after the selected model: p = {self.structure_p:.3g}")
+        noise = "" if self.noise_p is None else f" (with the noise-figure test: fit residual vs instrument noise p = {self.noise_p:.3g})"
+        lines.append(f"structure left after the selected model: p = {self.structure_p:.3g}{noise}")
         for d in self.diverged:
             left = "; its held-out samples are left out of the scores" if d["fit"] != "all data" else ""
             lines.append(f"refit diverged ({d['fit']}): {d['reason']}; replaced by the fit without the effects{left}")
@@ -210,7 +218,7 @@ def _noise_floor_repeats(data, groups):
 
 
 def _prior_step(J, r, cols, rows, scale, mu):
-    """First Gauss-Newton step, in typical sizes z (x = x_ref + scale z), of the refit's objective (fit.solve_folds):
+    """First Gauss-Newton step, in typical sizes z (x = x_ref + scale z), of the refit's objective (core.stacked_basis):
     argmin_z ||r + J_cols (scale z)||^2 / s^2 + sum_i mu_i z_i^2 on the rows `rows`, s^2 their mean square residual."""
     s = max(float(np.sqrt(np.mean(r[rows] ** 2))), 1e-300)
     A = np.vstack([J[np.ix_(rows, cols)] * scale[cols] / s, np.diag(np.sqrt(mu))])
@@ -361,21 +369,35 @@ class Baseline:
     estimated: np.ndarray  # columns of x the all-data baseline estimates (its base set)
     sigma: np.ndarray  # (m,) residual weight 1 / sigma per component (position and orientation RMS at the baseline)
     seconds: float
+    early_stopped: bool = False  # closed loop: stopped at CLOSED_BASELINE_STEPS by design
+    max_steps: int = 200  # the solver's step limit
+
+    @property
+    def failed(self) -> list[str]:
+        """The fits ("fold b", "all data") that did not converge within the step limit; [] when every fit converged
+        or a closed loop's fits were stopped early by design (CLOSED_BASELINE_STEPS)."""
+        if self.early_stopped:
+            return []
+        k = len(self.converged) - 1
+        return [f"fold {b + 1}" if b < k else "all data" for b in np.flatnonzero(~np.asarray(self.converged))]
 
     def weights(self, prep: Prepared):
         """(npad, m) weights 1 / sigma on the real samples."""
         return jnp.asarray(prep.valid[:, None] / self.sigma[None, :])
 
 
-def fit_baselines(robot, data: Dataset, prep: Prepared, max_steps: int) -> Baseline:
+def fit_baselines(robot, data: Dataset, prep: Prepared, settings: core.Settings) -> Baseline:
     """`identify` on every training fold and on all data (`baseline.baseline_fits`, the calibration core), then
-    the residual weights: 1 mm for positions, or, with orientations, each kind's RMS at the all-data baseline."""
+    the residual weights: 1 mm for positions, or, with orientations, each kind's RMS at the all-data baseline.
+    Closed loops stop after CLOSED_BASELINE_STEPS (early stopping, not a failure: `Baseline.failed`)."""
     t = time.perf_counter()
     model, folds = prep.model, prep.folds
     sigma = np.full(prep.m, 1e-3)
-    steps = max_steps if robot.closure is None else min(max_steps, CLOSED_BASELINE_STEPS)
+    capped = robot.closure is not None and settings.max_steps > CLOSED_BASELINE_STEPS
+    steps = CLOSED_BASELINE_STEPS if capped else settings.max_steps
     train = [prep.fold[:prep.n] != b for b in range(folds)] + [np.ones(prep.n, bool)]
-    cals = baseline_fits(robot, data, train, sigma_position=sigma[0], sigma_orientation=sigma[-1], max_steps=steps)
+    cals = baseline_fits(robot, data, train, sigma_position=sigma[0], sigma_orientation=sigma[-1],
+                         settings=dataclasses.replace(settings, max_steps=steps))
     ng = model.n_geometry
     xs = np.tile(model.nominal(), (folds + 1, 1))
     starts = xs.copy()
@@ -389,14 +411,15 @@ def fit_baselines(robot, data: Dataset, prep: Prepared, max_steps: int) -> Basel
         sigma = np.where(pos, np.sqrt(np.mean(rb[:, pos] ** 2)), np.sqrt(np.mean(rb[:, ~pos] ** 2)))
         sigma = np.maximum(sigma, 1e-9)
     return Baseline(xs, starts, np.array([c.converged and c.frames_converged for c in cals]),
-                    max(c.iterations for c in cals), np.asarray(cals[folds].estimated), sigma, time.perf_counter() - t)
+                    max(c.iterations for c in cals), np.asarray(cals[folds].estimated), sigma, time.perf_counter() - t,
+                    capped, settings.max_steps)
 
 
 # ---- stage 3: candidates and their separability ----------------------------------------------------------------------
 @dataclasses.dataclass
 class Linear:
-    """Residuals r (folds + 1, N*m) and Jacobians J (folds + 1, N*m, P) at each baseline; linearised joint fits
-    of a column set: held-out SSE over the folds and the all-data RSS."""
+    """Residuals r (folds + 1, N*m) at each baseline and the Jacobian J (N*m, P) at the all-data baseline, which
+    every fold shares; linearised joint fits of a column set: held-out SSE over the folds and the all-data RSS."""
 
     prep: Prepared
     r: np.ndarray
@@ -410,20 +433,28 @@ class Linear:
         sse, sse_pos = 0.0, 0.0
         for b in range(p.folds):
             test = valid & (fold == b)
-            d = _lstsq_step(self.J[b], self.r[b], cols, np.flatnonzero(valid & (fold != b)))
-            h = self.r[b] + self.J[b][:, cols] @ d
+            d = _lstsq_step(self.J, self.r[b], cols, np.flatnonzero(valid & (fold != b)))
+            h = self.r[b] + self.J[:, cols] @ d
             sse += float(np.sum(h[test] ** 2))
             sse_pos += float(np.sum(h[test & p.pos_rows] ** 2))
         full = np.flatnonzero(valid)
-        d = _lstsq_step(self.J[p.folds], self.r[p.folds], cols, full)
-        rss = float(np.sum((self.r[p.folds] + self.J[p.folds][:, cols] @ d)[full] ** 2))
+        d = _lstsq_step(self.J, self.r[p.folds], cols, full)
+        rss = float(np.sum((self.r[p.folds] + self.J[:, cols] @ d)[full] ** 2))
         return sse, sse_pos, rss
 
 
 def linearise(prep: Prepared, base: Baseline) -> Linear:
-    """Weighted residuals and their Jacobians in every parameter at each fold's baseline."""
-    r, J = gf.jacobians(jnp.asarray(base.xs), *prep.arrays(), base.weights(prep), model=prep.model)
-    return Linear(prep, np.asarray(r), np.asarray(J))
+    """Weighted residuals at each fold's baseline, and their Jacobian in every parameter at the all-data baseline.
+
+    One Jacobian for every fold: the folds' baselines differ from the all-data one by the noise-level scatter
+    of a fit on 1 - 1/k of the samples, which changes J only to second order in the linearised fits, while
+    one (N*m, P) Jacobian per fold cost k + 1 times the time and the memory (2500 pose samples, P = 117:
+    six vmapped Jacobians held ~1.3 GB of forward-mode intermediates)."""
+    qj, yj, cj = prep.arrays()
+    w = base.weights(prep)
+    r = np.asarray(gf.residual_batch(jnp.asarray(base.xs), qj, yj, cj, w, model=prep.model)).reshape(prep.folds + 1, -1)
+    _, J = gf.jacobians(jnp.asarray(base.xs[prep.folds:]), qj, yj, cj, w, model=prep.model)
+    return Linear(prep, r, np.asarray(J[0]))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -442,7 +473,7 @@ def separable_variants(prep: Prepared, lin: Linear, base: Baseline, effects) -> 
     after projecting out the geometry columns (all data): relative norm |E - Q Q^T E| / |E| > SEPARABLE_TOL,
     then a base set of those. Also {effect: why it is not a candidate} (a covariate missing, no parameters)."""
     model = prep.model
-    Jall = lin.J[prep.folds][prep.valid_rows]
+    Jall = lin.J[prep.valid_rows]
     Qg = scipy.linalg.qr(Jall[:, base.estimated], mode="economic")[0]
     variants, not_candidates = [], {}
     for eff in effects:
@@ -570,11 +601,19 @@ class Refit:
         return [int(d["fit"].split()[1]) - 1 for d in self.diverged if d["fit"] != "all data"]
 
 
-def _prior_weights(cols, mu: float, n_geometry: int, K: int) -> np.ndarray:
-    """mu per z column: on geometry and device-frame columns (and the unused padding), not on effects."""
-    out = np.full(K, mu)
-    out[:len(cols)] = np.where(np.asarray(cols) < n_geometry, mu, 0.0)
-    return out
+def prior_weights(cols, mu: float, n_geometry: int) -> np.ndarray:
+    """mu per refit column: on geometry and device-frame columns, not on effects."""
+    return np.where(np.asarray(cols) < n_geometry, mu, 0.0)
+
+
+def refit_problem(prep: Prepared, base: Baseline) -> core.Problem:
+    """The calibration core's problem of the refits: the gap model (geometry, device frame and every effect;
+    `gap.fit.GapResiduals`) on the padded samples with their covariates, weights 1 / sigma on the real samples,
+    prior the all-data baseline (each fold's own baseline is its prior in `Problem.basis_args`)."""
+    model = prep.model
+    return core.make_problem(model.robot, model.device, prep.q, prep.y, weights=1.0 / base.sigma,
+                             sample_weights=prep.valid.astype(float), free=np.ones(model.n_params, bool),
+                             a_ref=base.xs[prep.folds], model=gf.GapResiduals(model), cov=prep.cov)
 
 
 def box_limits(model: GapModel, moment_norm) -> np.ndarray:
@@ -587,10 +626,11 @@ def box_limits(model: GapModel, moment_norm) -> np.ndarray:
     return lim
 
 
-def refit(prep: Prepared, base: Baseline, lin: Linear, sel: Selection, max_steps: int) -> Refit:
-    """LM on the selected columns per fold, regularised toward the fold's baseline (mu = PRIOR_MU; 0 for closed
-    loops), from the regularised Gauss-Newton step where it lowers the training cost; fits that diverge
-    (`_divergence`) are flagged and replaced by their baseline."""
+def refit(prep: Prepared, base: Baseline, lin: Linear, sel: Selection, settings: core.Settings) -> Refit:
+    """The calibration core's LM (`core.solve_batch`, every fold and all data in one vmapped call) on the selected
+    columns, each fold regularised toward its baseline (mu = PRIOR_MU; 0 for closed loops) and started from the
+    regularised Gauss-Newton step where it lowers the training cost; fits that diverge (`_divergence`) are
+    flagged and replaced by their baseline."""
     model, folds = prep.model, prep.folds
     qj, yj, cj = prep.arrays()
     w = base.weights(prep)
@@ -601,18 +641,15 @@ def refit(prep: Prepared, base: Baseline, lin: Linear, sel: Selection, max_steps
     K = gf.active_size(len(base.estimated) + MAX_EFFECT_COLUMNS)
     scale = model.x_scale()
     mu = PRIOR_MU if model.robot.closure is None else 0.0
-    prior = _prior_weights(cols, mu, model.n_geometry, K)
-    z_start = np.zeros((folds + 1, K))
+    prior = prior_weights(cols, mu, model.n_geometry)
+    x_try = base.xs.copy()
     for b in range(folds + 1):
         train = np.flatnonzero(np.repeat(prep.train(b), prep.m))
-        z_start[b, :len(cols)] = _prior_step(lin.J[b], lin.r[b], cols, train, scale, prior[:len(cols)])
-    x_try = base.xs.copy()
-    x_try[:, cols] += scale[cols] * z_start[:, :len(cols)]
-    keep = _lower_cost_start(x_try, base.xs, qj, yj, cj, prep.fold_weights(base.sigma), model) == x_try
-    z_start[~np.all(keep, axis=1)] = 0.0  # that fold starts from its baseline
-    args = dict(ref=jnp.asarray(base.xs), w=jnp.asarray(prep.fold_weights(base.sigma)),
-                S=jnp.asarray(gf.selection(cols, model.n_params, scale, K)), mu=jnp.asarray(prior), q=qj, y=yj, cov=cj)
-    xs, ok, n_steps = gf.solve_folds(jnp.asarray(base.xs), jnp.asarray(z_start), args, model=model, max_steps=max_steps)
+        x_try[b, cols] += scale[cols] * _prior_step(lin.J, lin.r[b], cols, train, scale, prior)
+    x0s = _lower_cost_start(x_try, base.xs, qj, yj, cj, prep.fold_weights(base.sigma), model)
+    problem = refit_problem(prep, base)
+    args = problem.basis_args(cols, K, prior, base.xs, prep.fold_weights(base.sigma))
+    xs, ok, n_steps, _, _ = core.solve_batch(problem, jnp.asarray(x0s), args, settings, ("x0", "a_ref", "w"))
     xs, ok = np.array(xs), np.asarray(ok)
     r = np.array(gf.residual_batch(jnp.asarray(xs), qj, yj, cj, w, model=model))
     limits = box_limits(model, np.asarray(gf.moment_norms(jnp.asarray(base.xs[folds]), qj, model=model))[:prep.n])
@@ -640,11 +677,30 @@ class Heldout:
     oof_base: np.ndarray  # (n, m) out-of-fold weighted residuals of the baselines
     oof: np.ndarray  # (n, m) of the refits
     scored: np.ndarray  # (n,) samples scored (held out by a fold whose refit did not diverge)
+    noise_p: float | None = None  # `noise_test` p-value of the all-data fit against the noise figure (None: not given)
 
 
-def heldout(prep: Prepared, base: Baseline, sel: Selection, fit: Refit, data: Dataset) -> Heldout:
+def noise_figure_mm(sigma_position: float) -> float:
+    """3-D position noise RMS (mm) of an instrument with noise sigma_position (m) on each axis: sqrt(3) sigma."""
+    return float(np.sqrt(3.0) * sigma_position * 1e3)
+
+
+def noise_test(r, sigma_rows, n_params: int) -> float:
+    """p-value of the fit residual against the instrument's noise: under the model (residual = noise of the given
+    sigmas, n_params fitted), sum_i (r_i / sigma_i)^2 ~ chi2(rows - n_params); a small p says the residual is
+    larger than the instrument's noise, i.e. structure is left. r: (n, k) residuals (m, rad), sigma_rows: (k,)."""
+    chi2 = float(np.sum((np.asarray(r) / np.asarray(sigma_rows)[None, :]) ** 2))
+    dof = max(np.size(r) - n_params, 1)
+    return float(scipy.stats.chi2.sf(chi2, dof))
+
+
+def heldout(prep: Prepared, base: Baseline, sel: Selection, fit: Refit, data: Dataset,
+            sigma_position: float | None = None, sigma_orientation: float | None = None) -> Heldout:
     """Out-of-fold residuals; RMS before / after on the samples of the folds whose refit did not diverge; the noise
-    floor (repeated poses, else the all-data fit's residual with its degrees of freedom); shrink_fraction."""
+    floor (repeated poses, checked against the instrument's noise figure sigma_position when given; else that
+    noise figure; else the all-data fit's residual with its degrees of freedom); shrink_fraction; with a noise
+    figure, `noise_test` of the all-data fit's residual (position rows, and orientation rows when
+    sigma_orientation is given)."""
     n, m = prep.n, prep.m
     pos_scale = base.sigma[0] * 1e3
     oof_base, oof = prep.out_of_fold(fit.r_base), prep.out_of_fold(fit.r)
@@ -653,15 +709,32 @@ def heldout(prep: Prepared, base: Baseline, sel: Selection, fit: Refit, data: Da
     before = float(np.sqrt(np.mean(np.sum(oof_base[scored, :3] ** 2, axis=1)))) * pos_scale
     after = float(np.sqrt(np.mean(np.sum(oof[scored, :3] ** 2, axis=1)))) * pos_scale
     floor = _noise_floor_repeats(data, prep.groups)
+    rf_all = fit.r[prep.folds][:n] * base.sigma[None, :]  # a diverged all-data refit is its baseline already
+    n_fitted = len(base.estimated if fit.all_data_diverged else sel.columns)
+    noise_p, check = None, ""
+    if sigma_position is not None:
+        rows = prep.pos_comp if sigma_orientation is None else np.ones(m, bool)
+        sig = np.where(prep.pos_comp, sigma_position, sigma_orientation if sigma_orientation is not None else 1.0)
+        noise_p = noise_test(rf_all[:, rows], sig[rows], n_fitted)
     if floor is not None:
         noise_floor, source = floor * 1e3, "repeated poses"
+        if sigma_position is not None:
+            given = noise_figure_mm(sigma_position)
+            ratio = noise_floor / given
+            agree = 1 / 1.5 <= ratio <= 1.5
+            check = (f"repeated poses give {noise_floor:.4g} mm, the noise figure {given:.4g} mm (ratio {ratio:.2f}"
+                     f"{'' if agree else ': they disagree, check sigma_position'})")
+            source += f"; {check}"
+    elif sigma_position is not None:
+        noise_floor = noise_figure_mm(sigma_position)
+        source = f"instrument noise figure ({1e3 * sigma_position:.4g} mm per axis)"
     else:
         rf = fit.r[prep.folds][:n, :3]
         dof = max(n * m - len(base.estimated if fit.all_data_diverged else sel.columns), 1)
         noise_floor = float(np.sqrt(np.sum(rf**2) / n * (n * m) / dof)) * pos_scale
         source = "fit residual with its degrees of freedom" + (" (baseline: the refit diverged)" if fit.all_data_diverged else "")
     shrink = shrink_fraction(before, after, noise_floor) if sel.selected else 0.0
-    return Heldout(before, after, noise_floor, source, shrink, oof_base, oof, scored)
+    return Heldout(before, after, noise_floor, source, shrink, oof_base, oof, scored, noise_p)
 
 
 # ---- stage 7: where ------------------------------------------------------------------------------------------------------
@@ -698,7 +771,7 @@ def locate(prep: Prepared, base: Baseline, lin: Linear, ho: Heldout, data: Datas
     loads, tips = np.asarray(loads)[:n], np.asarray(tips)[:n]
     jn = model.robot.joint_names
     bases = wh.feature_bases(data.q, model.revolute, jn, loads, tips, data.covariates)
-    motion = joint_motion(model, lin.J[prep.folds], input_basis(model, data.q, prep.cov[:n]), n, prep.npad, m)
+    motion = joint_motion(model, lin.J, input_basis(model, data.q, prep.cov[:n]), n, prep.npad, m)
     directions = {f"joint angle {jn[j]}": motion[:, :, j] for j in range(model.robot.n_inputs)}
     s = ho.scored
     feats_base = wh.decompose(ho.oof_base, bases, tips, directions, seed=seed)
@@ -714,9 +787,23 @@ def locate(prep: Prepared, base: Baseline, lin: Linear, ho: Heldout, data: Datas
 
 
 # ---- stage 8: verdict ----------------------------------------------------------------------------------------------------
-def verdict_of(structure_p: float, alpha: float, selected, joint_names) -> tuple[str, tuple[str, ...]]:
-    """"unexplained" when structure is left (structure_p < alpha), "none" when nothing was selected, else the first
-    selected effect and the joints it was selected at."""
+NOT_CONVERGED = "baseline did not converge"
+
+
+def left_structure_p(feature_p: float, noise_p: float | None) -> float:
+    """p-value of the structure left: the feature test's (Bonferroni over features), combined with the noise-figure
+    test's when the instrument's noise is given (Bonferroni over the two tests)."""
+    if noise_p is None:
+        return feature_p
+    return float(min(1.0, 2.0 * min(feature_p, noise_p)))
+
+
+def verdict_of(structure_p: float, alpha: float, selected, joint_names, baseline_failed=()) -> tuple[str, tuple[str, ...]]:
+    """NOT_CONVERGED when a baseline fit stopped unconverged (`Baseline.failed`: geometry left unfitted reads as
+    an effect or as structure, so no effect is named); "unexplained" when structure is left (structure_p < alpha);
+    "none" when nothing was selected; else the first selected effect and the joints it was selected at."""
+    if baseline_failed:
+        return NOT_CONVERGED, ()
     if structure_p < alpha:
         return "unexplained", ()
     if not selected:
@@ -726,27 +813,39 @@ def verdict_of(structure_p: float, alpha: float, selected, joint_names) -> tuple
 
 
 def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_effects: int = 3, effects=None,
-             seed: int = 0, max_steps: int = 200) -> Diagnosis:
+             seed: int = 0, max_steps: int = 200, solver="lm", rtol: float | None = None, atol: float | None = None,
+             sigma_position: float | None = None, sigma_orientation: float | None = None) -> Diagnosis:
     """Diagnose the sim-to-real gap of `robot` on `data` (position or pose device) among `effects` (default: every
-    registered effect); see the module docstring."""
+    registered effect); see the module docstring.
+
+    solver, max_steps, rtol, atol: the calibration core's solver settings (`core.solver_settings`; rtol and atol
+    default to `core.Settings`') for the baselines and the refits. sigma_position (m per axis), sigma_orientation
+    (rad): the instrument's noise figure; without repeated poses it is the noise floor, and the all-data fit's
+    residual is tested against it (`noise_test`, part of the structure test); with repeated poses it is
+    checked against them."""
     t0 = time.perf_counter()
+    for name, v in (("sigma_position", sigma_position), ("sigma_orientation", sigma_orientation)):
+        if v is not None and not (np.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be a positive number (m or rad), got {v!r}")
+    settings = core.solver_settings(solver, max_steps, rtol, atol)
     effects = registered_effects() if effects is None else tuple(effects)
     prep = prepare(robot, data, folds, seed, effects)
-    base = fit_baselines(robot, data, prep, max_steps)
+    base = fit_baselines(robot, data, prep, settings)
     t_lin = time.perf_counter()
     lin = linearise(prep, base)
     variants, not_candidates = separable_variants(prep, lin, base, effects)
     sel = select(prep, lin, base, variants, alpha, max_effects, t_lin)
     t_fin = time.perf_counter()
-    fit = refit(prep, base, lin, sel, max_steps)
-    ho = heldout(prep, base, sel, fit, data)
+    fit = refit(prep, base, lin, sel, settings)
+    ho = heldout(prep, base, sel, fit, data, sigma_position, sigma_orientation)
     where = locate(prep, base, lin, ho, data, seed)
-    verdict, joints = verdict_of(where.structure_p, alpha, sel.selected, robot.joint_names)
+    structure_p = left_structure_p(where.structure_p, ho.noise_p)
+    verdict, joints = verdict_of(structure_p, alpha, sel.selected, robot.joint_names, base.failed)
     model, jn = prep.model, robot.joint_names
     params = {model.names[i]: float(fit.xs[folds][i])
               for s in ([] if fit.all_data_diverged else sel.selected) for i in s.cols}
     steps = {"baseline": base.steps, "final": fit.steps, "converged": bool(np.all(base.converged) and np.all(fit.converged)),
-             "baseline_converged": bool(np.all(base.converged))}
+             "baseline_converged": not base.failed, "baseline_failed": base.failed, "max_steps": settings.max_steps}
     timings = {"lm_steps": steps, "solve_s": base.seconds, "linear_s": sel.seconds, "final_s": time.perf_counter() - t_fin,
                "total_s": time.perf_counter() - t0}
     plot_data = {"q": data.q, "motion": where.motion, "tips": where.tips, "oof_base": ho.oof_base * base.sigma * 1e3,
@@ -754,5 +853,5 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
                  "labels": ["x", "y", "z", "rx", "ry", "rz"][:prep.m]}
     return Diagnosis(robot.name, data.device.kind, verdict, joints, sel.ranking, ho.shrink, where.summary, ho.before, ho.after,
                      ho.noise_floor, ho.noise_source, [(s.effect, tuple(jn[j] for j in s.joints)) for s in sel.selected],
-                     params, where.structure_p, not_candidates, prep.n, folds, timings, diverged=fit.diverged,
-                     mass_model=model.mass_model, plot_data=plot_data)
+                     params, structure_p, not_candidates, prep.n, folds, timings, diverged=fit.diverged,
+                     mass_model=model.mass_model, plot_data=plot_data, noise_p=ho.noise_p)

@@ -1,31 +1,55 @@
-"""Joint identification of geometry, device frame and effects for the gap diagnosis.
+"""The gap model as the calibration core's residual model, and the kernels the diagnosis evaluates.
 
-The stacked residual generalises `jaxcal.fit.core.stacked` with per-sample covariates and
-effect parameters: data rows w * (y - read(x, q, c)) with x = x_ref + S z (S selects the estimated
-parameters at their typical size, so the others stay at x_ref), and Tikhonov rows sqrt(mu) z that
-hold the estimated geometry near x_ref (seed 004 eq 3.12, as `jaxcal.realdata`'s "prior").
-Samples are padded to a bucket size with
-weight 0 and folds are weight masks, so one compiled LM (optimistix, identify's solver) serves
-every candidate, fold and dataset of similar size; the folds are solved in one vmapped call.
+`GapResiduals` hands a `GapModel` (x = [robot, device, effect parameters], per-sample covariates) to the
+calibration core (`jaxcal.fit.core.Problem(model=...)`): the diagnosis' refits run on the core's solve path
+(`core.solve_batch` with the folds' priors and weight masks batched, `core.stacked_basis`). Samples are
+padded to a bucket size with weight 0 (`padded_size`), so datasets of similar size share compiled code.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
-from jaxcal.fit.core import make_solver
 from jaxcal.gap import closed
 from jaxcal.gap.effects import gravity_loads, joint_axes, read, residuals
 from jaxcal.gap.model import GapModel
 from jaxcal.kin.model import frames_single, joint_variables
 
 SIZE_BUCKETS = (96, 192, 320)  # padded sample counts; beyond 320, multiples of 128
-RTOL, ATOL = 1e-5, 1e-7  # LM tolerances on the cost and on the step z (z in units of the typical parameter size)
+
+
+@dataclasses.dataclass(frozen=True)
+class GapResiduals:
+    """A `GapModel` as the calibration core's residual model (names, units, priority, x_scale, residuals).
+    Hashes by its model (models are cached per robot and device, so compiled solvers are shared)."""
+
+    model: GapModel
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.model.names
+
+    @property
+    def units(self) -> tuple[str, ...]:
+        m = self.model
+        return tuple(m.robot.units) + tuple(m.device.units) + ("effect",) * len(m.effect_names)
+
+    @property
+    def priority(self) -> np.ndarray:
+        m = self.model
+        return np.concatenate([m.robot.priority, m.device.priority, np.zeros(len(m.effect_names))])
+
+    def x_scale(self) -> np.ndarray:
+        return self.model.x_scale()
+
+    def residuals(self, x, q, y, cov, w):
+        """w * (y - read(x, q, c)) (N, m) with every effect at its value in x (`jaxcal.gap.effects.residuals`)."""
+        return residuals(self.model, x, q, y, cov, w)
 
 
 def padded_size(n: int) -> int:
@@ -75,46 +99,9 @@ def covariate_matrix(model: GapModel, covariates: dict, n: int):
 
 
 def active_size(n_columns: int) -> int:
-    """Length of the estimated vector z: the columns rounded up to a multiple of 8 (fewer compiles)."""
+    """Length of the refit's unknown vector z (`core.stacked_basis`): the columns rounded up to a multiple of 8
+    (fewer compiles)."""
     return int(np.ceil(max(n_columns, 1) / 8)) * 8
-
-
-def selection(cols, n_params: int, scale, K: int) -> np.ndarray:
-    """(P, K) matrix S with x = x_ref + S z: column i of S picks parameter cols[i] at its typical size
-    (columns beyond len(cols) are zero, so one K, hence one compiled solver, serves every stage)."""
-    S = np.zeros((n_params, K))
-    S[np.asarray(cols, int), np.arange(len(cols))] = np.asarray(scale)[np.asarray(cols, int)]
-    return S
-
-
-def _data_rows(model, z, a):
-    return residuals(model, a["ref"] + a["S"] @ z, a["q"], a["y"], a["cov"], a["w"]).reshape(-1)
-
-
-def _rows_with_prior(model, z, a):
-    return jnp.concatenate([_data_rows(model, z, a), jnp.sqrt(a["mu"]) * z])
-
-
-_AXES = {"ref": 0, "w": 0, "S": None, "mu": None, "q": None, "y": None, "cov": None}
-
-
-@functools.partial(jax.jit, static_argnames=("model", "max_steps"))
-def solve_folds(x_refs, z_starts, args, *, model, max_steps=100):
-    """LM on z, x = x_ref + S z, for each fold b: reference x_refs[b], start z_starts[b], weights args["w"][b].
-
-    Minimises ||rows(z)||^2 / s_b^2 + sum_i mu_i z_i^2, with s_b^2 the mean square data row at the
-    reference (so mu_i = 1 makes a departure of one typical size cost as much as one reading at the
-    reference's RMS residual). Returns (x, ok, steps). Only the K selected columns are differentiated."""
-
-    def one(x_ref, z0, a):
-        a = dict(a, ref=x_ref)
-        r_ref = _data_rows(model, jnp.zeros_like(z0), a)
-        a = dict(a, w=a["w"] / jnp.maximum(jnp.sqrt(jnp.sum(r_ref**2) / jnp.maximum(jnp.sum(a["w"] > 0), 1)), 1e-12))
-        fn = functools.partial(_rows_with_prior, model)
-        sol = optx.least_squares(fn, make_solver("lm", RTOL, ATOL), z0, a, max_steps=max_steps, throw=False)
-        return x_ref + a["S"] @ sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
-
-    return jax.vmap(one, (0, 0, _AXES))(x_refs, z_starts, args)
 
 
 @functools.partial(jax.jit, static_argnames=("model",))
