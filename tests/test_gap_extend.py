@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import os
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -66,3 +68,30 @@ def test_unregistering_restores_the_built_in_layout(temperature_offset):
         assert without.effect_names == tuple(n for n in with_it.effect_names if temperature_offset.name not in n)
     finally:
         register(temperature_offset)
+
+
+@pytest.mark.parametrize("robot_name", ["kr6", "stanford", "mrr1"])
+def test_joint_axes_turn_the_tip_as_the_kinematics_do(robot_name):
+    """For every revolute joint j, d(tip)/dq_j = z_j x (tip - o_j) with (o_j, z_j) from `joint_axes`: checked
+    against jax.jacfwd of the forward kinematics for a standard-DH table (KR6: the axis is the parent's z),
+    modified DH (Stanford) and PRY modules (MRR-1: the axis passes through the parent's origin)."""
+    import jax
+
+    from jaxcal.gap.effects import gap_model, joint_axes
+    from jaxcal.kin.model import frames_single, joint_variables
+
+    if robot_name == "kr6":
+        rb = jc.load_robot(os.path.join(os.path.dirname(jc.__file__), "robots", "data", "kr6_r900_dh.yaml"))
+    else:
+        rb = jc.robots.get(robot_name)
+    model = gap_model(rb, jc.make_device("position"))
+    a = jnp.asarray(jc.perturb(rb, {"length": 0.01, "angle": 0.01}, seed=3))  # gains stay 1: d(tip)/dq_j is then the axis term
+    q = jnp.asarray(jc.random_configurations(rb, 1, seed=4)[0])
+    F = frames_single(rb, a, joint_variables(rb, a, q))
+    o, z = joint_axes(model, F)
+    tip = F.p[rb.tip]
+    J = jax.jacfwd(lambda v: jc.forward(rb, a, v).p)(q)
+    for j, revolute in enumerate(model.revolute):
+        want = np.asarray(J[:, j])
+        got = np.cross(np.asarray(z[j]), np.asarray(tip - o[j])) if revolute else np.asarray(z[j])
+        np.testing.assert_allclose(got, want, atol=1e-12, err_msg=f"{robot_name} joint {j}")

@@ -38,6 +38,7 @@ import jax.numpy as jnp
 from jaxcal.gap import closed
 from jaxcal.gap.effect import EFFECT_SCALE, get_effect, registered_effects
 from jaxcal.gap.model import G_HAT, GapModel, gap_model, joint_offsets, params_of, reading_effects, tool_transforms
+from jaxcal.kin.convention import joint_line
 from jaxcal.kin.model import frames_single, joint_variables
 from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import exp_so3
@@ -51,17 +52,18 @@ NEEDS = {e: get_effect(e).needs for e in EFFECTS if get_effect(e).needs is not N
 
 
 def joint_axes(model: GapModel, F):
-    """(o_j, z_j): a point on each joint axis and its direction, from the body frames F."""
+    """(o_j, z_j): a point on each joint axis and its direction in the world, from the body frames F
+    (`kin.convention.joint_line`: the parent's axis for standard DH, the parent's origin for PRY modules)."""
     robot = model.robot
-    root = robot.base.p if robot.base is not None else jnp.zeros(3)
+    root_p = robot.base.p if robot.base is not None else jnp.zeros(3)
+    root_R = robot.base.R if robot.base is not None else jnp.eye(3)
     pts, dirs = [], []
     for b in model.joint_body:
         body = robot.bodies[b]
-        dirs.append(F.R[b] @ body.conv.joint_axis(body.kind))
-        if body.conv.axis_through_parent_origin(body.kind):  # e.g. a PRY module (seed 000 eq 3.45)
-            pts.append(root if body.parent < 0 else F.p[body.parent])
-        else:
-            pts.append(F.p[b])
+        R_par, p_par = (root_R, root_p) if body.parent < 0 else (F.R[body.parent], F.p[body.parent])
+        o, z = joint_line(body.conv, body.kind, F.R[b], F.p[b], R_par, p_par)
+        pts.append(o)
+        dirs.append(z)
     return jnp.stack(pts), jnp.stack(dirs)
 
 
