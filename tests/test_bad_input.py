@@ -49,7 +49,7 @@ def _calibrate_fails(capsys, robot, data, out, *extra):
     (lambda s: s.replace("[0.25, 0, 0,", "[0.25, zero, 0,"), r"row 2, field 'y': not a number"),
     (lambda s: s.replace("[0.0, 0, 0, 0, 0, 0, prismatic]", "[0.0, 0, 0, 0, 0, prismatic]"), r"row 3: expected 7 fields"),
     (lambda s: s.replace("revolute]\n  - [0.25", "twisting]\n  - [0.25"), r"row 1, field 'type': unknown joint type"),
-    (lambda s: s.replace("convention: pry", "convention: dh"), r"field 'convention' must be one of"),
+    (lambda s: s.replace("convention: pry", "convention: dh"), r"field 'convention': unknown convention 'dh' .*expected one of"),
     (lambda s: s.replace("angle: deg", "angle: grad"), r"units.angle must be 'rad' or 'deg'"),
     (lambda s: s + "  - [0, 0\n", r"not valid YAML"),
 ])
