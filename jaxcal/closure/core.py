@@ -19,8 +19,9 @@ reported (status UNCLOSED, or OTHER_MODE when it closes only in another assembly
 
 Failure is data: the thesis' check (|v| > 1e-10 after convergence) flags a sample; `solve` returns
 the flag and `forward_closed` moves a flagged sample's position by `FAIL_OFFSET` metres and turns
-its frame by `FAIL_ROTATION` (finite, no NaN, but far from any reading of any device kind) so a fit step that makes a sample infeasible raises the cost
-and is rejected by the line search / trust region, as the thesis returns Inf (§3.3).
+its frame by `FAIL_ROTATION` (finite, no NaN, but far from any reading of any device kind) so a fit
+step that makes a sample infeasible raises the cost and is rejected by the line search / trust
+region, as the thesis returns Inf (§3.3).
 """
 
 from __future__ import annotations
@@ -34,10 +35,10 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from jaxcal.closure.track import CLOSED, OTHER_MODE, UNCLOSED, corrector, damped_newton, track
 from jaxcal.kin.model import Robot, frames_single, joint_variables, map_leading_axes
 from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import quat_from_matrix
-from jaxcal.closure.track import CLOSED, OTHER_MODE, UNCLOSED, corrector, damped_newton, track
 from jaxcal.linalg import solve_small
 
 CLOSURE_KINDS = ("full", "position")

@@ -20,9 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.fit import core
+from jaxcal.fit.bias import ILL_CONDITIONED_BIAS, NOISE_DOMINATED, choose_bias, weakest_standard_error
 from jaxcal.fit.data import Dataset
-from jaxcal.fit.bias import EXACT_FIT_RATIO, ILL_CONDITIONED_BIAS, choose_bias
-from jaxcal.fit.health import CONDITION_LIMIT, Health, assess, residual_ratio, scaled_condition
+from jaxcal.fit.health import Health, assess
 from jaxcal.forward import forward
 from jaxcal.kin.model import Robot
 from jaxcal.measure.devices import Device
@@ -234,10 +234,10 @@ def identify(
     optimistix least-squares solver object.
     base: estimate only the base set of the free columns (seed 001 App. III); others stay at a0.
     bias: mu, or a decreasing sequence of mu, for the term mu ||(x - x0)/scale||^2 (seed 004 eq 3.12). Default
-    (None): no bias, unless the estimate is ill-conditioned (scaled condition number above
-    `health.CONDITION_LIMIT`) and the data are noisy (unbiased residual above `fit.bias.EXACT_FIT_RATIO` x the
-    stated sigmas: an exact fit has no noise to fit along weak directions); then the schedule `fit.bias.ILL_CONDITIONED_BIAS` (ending at mu = 1e-5, not 0:
-    docs/delta.md shows it winning on new settings) is used. "heldout": when ill-conditioned, the end of the
+    (None): no bias, unless the unbiased estimate is noise-dominated (some estimated parameter's linearised
+    standard error above `fit.bias.NOISE_DOMINATED` x its typical size: 1 mm / 1 mrad); then the schedule
+    `fit.bias.ILL_CONDITIONED_BIAS` (ending at mu = 1e-5, not 0: docs/delta.md shows it winning on new
+    settings) is used. "heldout": when noise-dominated, the end of the
     schedule `fit.bias.BIAS_PATH` is chosen by k-fold held-out reading error (`fit.bias.choose_bias`). The
     schedule used is in `info["bias_schedule"]`.
     bounds: {name: (low, high)} enforced by a penalty (seed 004 §3.3).
@@ -287,17 +287,17 @@ def identify(
                          seed=seed, base_tol=base_tol)
     bias_info = {}
     if bias is None or (isinstance(bias, str) and bias == "heldout"):
-        condition = scaled_condition(cal)
-        noisy = residual_ratio(cal) > EXACT_FIT_RATIO  # an exact fit (noise-free data) has no noise to overfit
-        if condition is not None and condition > CONDITION_LIMIT and noisy:  # ill-conditioned: stop the bias above 0
+        weakest = weakest_standard_error(cal)
+        if weakest > NOISE_DOMINATED:  # noise-dominated estimate: stop the bias schedule above 0
             if bias is None:
                 schedule = list(ILL_CONDITIONED_BIAS)
             else:  # where the schedule stops, chosen by k-fold held-out error (`jaxcal.fit.bias`)
                 schedule, scores = choose_bias(problem, cal, settings)
                 bias_info["bias_heldout"] = scores.tolist()
-            bias_info.update(bias_schedule=schedule, bias_condition=condition)
+            bias_info.update(bias_schedule=schedule)
             cal = core.calibrate(problem, settings, base=base, bias=schedule, multistart=multistart, seed=seed,
                                  base_tol=base_tol)
+        bias_info["weakest_standard_error"] = weakest
     health = assess(cal, unclosed_start=unclosed + tuple(_unclosed_excluded), sample_index=keep, settings=settings)
     if robot.closure is not None and not _unclosed_excluded:
         # re-check the closure at the solution: samples that do not close there are left out and the fit repeated
