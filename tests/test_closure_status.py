@@ -47,6 +47,7 @@ def test_simulate_warns_about_unclosed_samples(fb3):
         jc.simulate(fb3, _table_4_2b(fb3), Q, "position")
 
 
+@pytest.mark.slow  # ~160 s on the loaded 2-core machine (compile of jacfwd through the Delta's two paths)
 def test_delta_general_path_closes_what_the_fast_path_misses_and_differentiates():
     """Delta with 1 cm / 0.01 rad errors: settings the fast Newton does not close on the nominal branch
     are closed by the continuation; jacfwd of the tool position w.r.t. the free parameters through those
