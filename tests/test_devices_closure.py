@@ -143,15 +143,40 @@ def test_delta_simulation_2_theodolite():
     assert after < 1e-6 * before
 
 
+def _tool_errors(rb, a_cal, a_true, n_new=500, seed=11):
+    """Accuracy of a calibrated Delta model in mm: (worst, RMS) of the predicted tool position at n_new new
+    settings (nacelle centres drawn in the 400 mm cube), and (worst, RMS) after compensation on the 125-point
+    grid (the model's inverse commanded on the true robot, seed 004 §3.2/§4.4)."""
+    from jaxcal.fit.compensate import compensate
+
+    inverse = jax.jit(jax.vmap(dl.inverse))
+    P_new = dl.grid()[0] + 0.4 * np.random.default_rng(seed).random((n_new, 3))
+    q_new = inverse(jnp.asarray(P_new))[0]
+    e = np.linalg.norm(np.asarray(jc.forward(rb, a_cal, q_new).p - jc.forward(rb, a_true, q_new).p), axis=-1) * 1e3
+    T = jnp.asarray(dl.grid())
+    comp = compensate(rb, a_cal, T, start=inverse(T)[0])
+    ec = np.linalg.norm(np.asarray(jc.forward(rb, a_true, comp.q).p - T), axis=-1) * 1e3
+    rms = lambda v: float(np.sqrt(np.mean(v**2)))  # noqa: E731
+    return {"predict_worst": float(e.max()), "predict_rms": rms(e), "compensated_worst": float(ec.max()),
+            "compensated_rms": rms(ec)}
+
+
 @pytest.mark.slow
 def test_delta_simulation_3_theodolite_with_noise():
-    """Delta simulation 3: as 2 with angle noise variance 1.28e-9 rad^2 (eq 4.6) and actuator noise
-    variance 1.31e-9 rad^2 (eq 4.7). Thesis: 0.449 -> 0.089, d1_26 within 0.14 mm, other lengths up
-    to 7.5 mm off. Measured: 0.0248 -> 5.3e-4 rad, i.e. the noise floor sqrt(250 - 53) * 3.6e-5
-    = 5.0e-4; the 20 mm error is recovered to ~3.6 mm (theodolite angles at 3.7 m leave the
-    74-parameter model poorly conditioned; see docs/delta.md)."""
+    """Delta simulation 3 with identify's DEFAULT options: as 2 with angle noise variance 1.28e-9 rad^2
+    (eq 4.6) and actuator noise variance 1.31e-9 rad^2 (eq 4.7). Judged by the calibrated model at new
+    settings, next to the thesis' 3.7 mm: the estimate is ill-conditioned (theodolite at 3.7 m), so identify
+    stops the bias schedule at mu = 1e-5 (`fit.bias.ILL_CONDITIONED_BIAS`). Measured: predicted tool
+    position at 500 new settings worst 1.2 mm / RMS 0.42 mm, compensated on the grid worst 1.1 / RMS 0.46 mm
+    (nominal model: 24.3 / 18.6 mm and 25.7 / 18.9 mm; ending at mu = 0: 62 mm). Rod 26 (d1_26) is
+    found to ~7 mm only: it is one of the poorly determined lengths (docs/delta.md)."""
     noise = {"orientation": np.sqrt(1.28e-9), "actuator": np.sqrt(1.31e-9)}
     rb, a_true, fit, before, after = _delta_study(_theodolite(), noise=noise, sigma_orientation=np.sqrt(1.28e-9))
+    assert fit.info["bias_schedule"][-1] > 0.0
+    acc = _tool_errors(rb, fit.a, a_true)
+    nominal = _tool_errors(rb, rb.nominal, a_true)
+    assert acc["predict_worst"] <= 5.0 and acc["compensated_worst"] <= 5.0, acc  # thesis 3.7 mm
+    assert acc["predict_rms"] < 0.2 * nominal["predict_rms"], (acc, nominal)
+    assert acc["compensated_rms"] < 0.2 * nominal["compensated_rms"], (acc, nominal)
     floor = np.sqrt(250 - len(fit.estimated)) * np.sqrt(1.28e-9)
-    assert abs(float(fit.a[rb.index("j26.d1")] - a_true[rb.index("j26.d1")])) < 6e-3
-    assert after < 1.5 * floor and before > 20 * floor
+    assert after < 1.5 * floor and before > 20 * floor, (after, floor, before)

@@ -10,6 +10,8 @@ from jaxcal.closure.core import (
     all_frames,
     closed,
     closure_residual,
+    closure_status,
+    failed_pose,
     forward_closed,
     open_tree,
     solve,
@@ -17,7 +19,9 @@ from jaxcal.closure.core import (
 )
 from jaxcal.closure.planar import planar_robot
 from jaxcal.closure.table import closure_from_rows
+from jaxcal.closure.track import CLOSED, OTHER_MODE, STATUS_NAMES, UNCLOSED
 
-__all__ = ["CLOSED_TOL", "FAIL_OFFSET", "VERDICTS", "Closure", "ClosureSolution", "Mobility", "all_frames", "closed",
-           "closure_from_rows", "closure_residual", "constraint_jacobian", "forward_closed", "mobility", "open_tree",
-           "planar_robot", "solve", "tree_frames"]
+__all__ = ["all_frames", "closed", "CLOSED", "CLOSED_TOL", "Closure", "closure_from_rows", "closure_residual",
+           "closure_status", "ClosureSolution", "constraint_jacobian", "FAIL_OFFSET", "failed_pose", "forward_closed",
+           "Mobility", "mobility", "open_tree", "OTHER_MODE", "planar_robot", "solve", "STATUS_NAMES", "tree_frames",
+           "UNCLOSED", "VERDICTS"]

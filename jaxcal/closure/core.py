@@ -13,10 +13,15 @@ at v = 0), so `jax.jacfwd` of `forward_closed` with respect to `a` is the closed
 eq 2.65/2.69. (optimistix's own `ImplicitAdjoint` gives the same numbers but differentiates the
 Hessian of |v|^2: compiling jacfwd through it took ~36 s for the 3-D four-bar against ~4 s here.)
 
+Robustness: the default solver ("track") follows the closed configuration by continuation from the
+nominal closed configuration (`jaxcal.closure.track`): a sample either closes on that branch or is
+reported (status UNCLOSED, or OTHER_MODE when it closes only in another assembly mode).
+
 Failure is data: the thesis' check (|v| > 1e-10 after convergence) flags a sample; `solve` returns
-the flag and `forward_closed` moves a flagged sample's position by `FAIL_OFFSET` metres (finite,
-no NaN, but far from any reading) so a fit step that makes a sample infeasible raises the cost
-and is rejected by the line search / trust region, as the thesis returns Inf (§3.3).
+the flag and `forward_closed` moves a flagged sample's position by `FAIL_OFFSET` metres and turns
+its frame by `FAIL_ROTATION` (finite, no NaN, but far from any reading of any device kind) so a fit
+step that makes a sample infeasible raises the cost and is rejected by the line search / trust
+region, as the thesis returns Inf (§3.3).
 """
 
 from __future__ import annotations
@@ -30,14 +35,18 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from jaxcal.closure.track import CLOSED, OTHER_MODE, UNCLOSED, corrector, damped_newton, track
 from jaxcal.kin.model import Robot, frames_single, joint_variables, map_leading_axes
 from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import quat_from_matrix
 from jaxcal.linalg import solve_small
 
 CLOSURE_KINDS = ("full", "position")
-SOLVERS = ("lm", "newton")
+SOLVERS = ("track", "lm", "newton")
 FAIL_OFFSET = 1.0e3  # metres added to each coordinate of a sample whose loops do not close
+# rotation applied to the tool of a sample whose loops do not close: the cyclic permutation x -> y -> z -> x
+# (120 degrees about (1, 1, 1)), so every axis an orientation device reads moves by 90 degrees
+FAIL_ROTATION = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 CLOSED_TOL = 1e-10  # seed 004 §2.4.1: residual norm above this is a failure to close
 
 
@@ -52,8 +61,11 @@ class Closure:
     w_position, w_orientation: diagonal of the weighting matrix Wc (eq 2.25).
     start_fn: optional start_fn(a, qj) -> theta_free start per sample (e.g. a nominal direct
         solution, seed §2.4); used instead of `start` when given (no derivative flows through it).
-    solver: "lm" (optimistix Levenberg-Marquardt, the default) or "newton" (the Newton/LM hybrid
-        `newton_lm`: Gauss-Newton steps with LM damping only when a step fails; cheaper to compile).
+    solver: "track" (the default: continuation from the nominal closed configuration,
+        `jaxcal.closure.track`, which cannot switch assembly mode silently), "lm" (optimistix
+        Levenberg-Marquardt from the start) or "newton" (the Newton/LM hybrid `newton_lm`). The two
+        direct solvers fall back to the continuation for samples they do not close, but a sample they
+        close is not checked against the nominal branch.
     """
 
     pairs: tuple[tuple[int, int, str], ...]
@@ -63,7 +75,7 @@ class Closure:
     w_orientation: float = 1.0
     tol: float = CLOSED_TOL
     max_steps: int = 100
-    solver: str = "lm"
+    solver: str = "track"
     start_fn: Callable | None = None
 
     def __post_init__(self):
@@ -85,12 +97,14 @@ class Closure:
 
 
 class ClosureSolution(NamedTuple):
-    """Free joint values, weighted residual norm |v| and the closed flag (|v| <= tol), per sample."""
+    """Free joint values, weighted residual norm |v|, the closed flag, solver iterations and the status
+    (`jaxcal.closure.track`: CLOSED, UNCLOSED or OTHER_MODE), per sample. ok = (status == CLOSED)."""
 
     theta_free: jnp.ndarray
     residual_norm: jnp.ndarray
     ok: jnp.ndarray
     steps: jnp.ndarray
+    status: jnp.ndarray
 
 
 def checked_closure(robot: Robot) -> Closure:
@@ -182,8 +196,8 @@ def newton_lm(fn, start, max_steps: int, tol: float):
     return th, k
 
 
-def _lm_solve(robot: Robot, a, qj, start):
-    """(theta_free, steps): LM on |v|^2 from start (never raises, so a batch survives a bad sample)."""
+def _direct_solve(robot: Robot, a, qj, start):
+    """(theta_free, steps): the configured direct solver ("lm" or "newton") from start at (a, qj)."""
     c = robot.closure
     if c.solver == "newton":
         th, k = newton_lm(lambda th: closure_residual(robot, a, qj, th), start, c.max_steps, c.tol)
@@ -195,14 +209,63 @@ def _lm_solve(robot: Robot, a, qj, start):
     return jnp.where(finite, sol.value, start), sol.stats["num_steps"]
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _closed_theta(robot: Robot, a, qj, start):
+def _homotopy(robot: Robot, a, qj, from_home: bool):
+    """v(theta, t) along the path from the nominal robot (t = 0) to (a, qj) (t = 1): parameters
+    a_ref + t (a - a_ref), and, when the start is the home configuration's (`from_home`), actuated
+    joints qj_home + t (qj - qj_home); a per-sample start (start_fn) is already at qj."""
+    a_ref = jnp.asarray(robot.nominal_np)
+    qj_ref = joint_variables(robot, a_ref, jnp.asarray(robot.home_np)) if from_home else qj
+
+    def fn(theta, t):
+        return closure_residual(robot, a_ref + t * (a - a_ref), qj_ref + t * (qj - qj_ref), theta)
+
+    return fn
+
+
+def _is_closed(robot, a, qj, theta):
+    norm = jnp.linalg.norm(closure_residual(robot, a, qj, theta))
+    return jnp.isfinite(norm) & (norm <= robot.closure.tol)
+
+
+def _lm_solve(robot: Robot, a, qj, start, mode: str):
+    """(theta_free, steps, status) from start (never raises, so a batch survives a bad sample).
+
+    mode "explicit": a caller-given start, solved directly (the caller chose the assembly mode);
+    "home" / "start_fn": the closure's own start, solved by the configured solver (see `Closure`)."""
+    c = robot.closure
+    fn = lambda th: closure_residual(robot, a, qj, th)  # noqa: E731
+    if mode == "explicit":
+        th, k = _direct_solve(robot, a, qj, start) if c.solver != "track" else damped_newton(fn, start, c.tol, c.max_steps)
+        return th, k, jnp.where(_is_closed(robot, a, qj, th), CLOSED, UNCLOSED)
+    if c.solver == "track":  # Newton from the start, kept only if it contracts and stays near the start
+        th, direct_ok, k = corrector(fn, start, 0.01 * c.tol, loose=c.tol)
+    else:
+        th, k = _direct_solve(robot, a, qj, start)
+        direct_ok = _is_closed(robot, a, qj, th)
+    # continuation from the nominal closed configuration (at the home setting when the start is the home one)
+    tracked = track(_homotopy(robot, a, qj, mode == "home"), start, 0.01 * c.tol, active=~direct_ok, loose=c.tol)
+    if mode == "home":  # the start does not close at home: continue in the parameters only, at this setting
+        again = track(_homotopy(robot, a, qj, False), start, 0.01 * c.tol, active=~direct_ok & ~tracked.ref_ok, loose=c.tol)
+        tracked = jax.tree_util.tree_map(lambda u, v: jnp.where(tracked.ref_ok, u, v), tracked, again)._replace(
+            steps=tracked.steps + again.steps)
+    th = jnp.where(direct_ok, th, tracked.theta)
+    ok = direct_ok | (tracked.reached & _is_closed(robot, a, qj, th))
+    # not closed on the branch: does a direct solve from the start close it (another assembly mode)?
+    other, k2 = damped_newton(fn, start, c.tol, c.max_steps, active=~ok)
+    other_ok = ~ok & _is_closed(robot, a, qj, other)
+    status = jnp.where(ok, CLOSED, jnp.where(other_ok, OTHER_MODE, UNCLOSED))
+    # an unclosed sample keeps the least-squares point of the direct solve (flagged; finite derivative)
+    return jnp.where(ok, th, other), k + tracked.steps + k2, status
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 4))
+def _closed_theta(robot: Robot, a, qj, start, mode):
     """theta_free closing the loops; its derivative is the implicit function theorem (eq 2.65-2.69)."""
-    return _lm_solve(robot, a, qj, start)
+    return _lm_solve(robot, a, qj, start, mode)
 
 
 @_closed_theta.defjvp
-def _closed_theta_jvp(robot, primals, tangents):
+def _closed_theta_jvp(robot, mode, primals, tangents):
     """d theta = -(V^T V)^-1 V^T (dv/da da + dv/dq dq), V = dv/dtheta at the closed configuration.
 
     At v = 0 this is the exact implicit derivative of the least-squares solution (the second-order
@@ -210,37 +273,41 @@ def _closed_theta_jvp(robot, primals, tangents):
     """
     a, qj, start = primals
     da, dqj, _ = tangents
-    theta, steps = _lm_solve(robot, a, qj, start)
+    theta, steps, status = _lm_solve(robot, a, qj, start, mode)
     V = jax.jacfwd(lambda th: closure_residual(robot, a, qj, th))(theta)
     _, dv = jax.jvp(lambda a_, q_: closure_residual(robot, a_, q_, theta), (a, qj), (da, dqj))
     dtheta = -solve_small(V.T @ V, V.T @ dv)
     dtheta = jnp.where(jnp.all(jnp.isfinite(dtheta)), dtheta, 0.0)  # singular V: no closure, flagged anyway
-    return (theta, steps), (dtheta, np.zeros(np.shape(steps), dtype=jax.dtypes.float0))
+    zero = lambda v: np.zeros(np.shape(v), dtype=jax.dtypes.float0)  # noqa: E731
+    return (theta, steps, status), (dtheta, zero(steps), zero(status))
 
 
-def _solve_single(robot: Robot, a, qj, start) -> ClosureSolution:
+def _solve_single(robot: Robot, a, qj, start, mode: str) -> ClosureSolution:
     c = robot.closure
     if start is None:  # per-sample start from the robot's start_fn
         start = jnp.asarray(jax.lax.stop_gradient(c.start_fn(a, qj)), dtype=jnp.float64)
-    theta, steps = _closed_theta(robot, a, qj, start)
+    theta, steps, status = _closed_theta(robot, a, qj, start, mode)
     norm = jnp.linalg.norm(closure_residual(robot, jax.lax.stop_gradient(a), jax.lax.stop_gradient(qj),
                                             jax.lax.stop_gradient(theta)))
-    ok = jnp.isfinite(norm) & (norm <= c.tol)
-    return ClosureSolution(theta, jnp.where(jnp.isfinite(norm), norm, jnp.inf), ok, steps)
+    ok = (status == CLOSED) & jnp.isfinite(norm) & (norm <= c.tol)
+    status = jnp.where(ok | (status != CLOSED), status, UNCLOSED)
+    return ClosureSolution(theta, jnp.where(jnp.isfinite(norm), norm, jnp.inf), ok, steps, status)
 
 
 def _start(robot: Robot, start):
-    """The explicit start, else None when the closure has a start_fn, else the closure's start."""
-    if start is None and robot.closure.start_fn is not None:
-        return None
-    s = robot.closure.start if start is None else start
-    return jnp.asarray(s, dtype=jnp.float64)
+    """(start, mode): the explicit start ("explicit"), else None when the closure has a start_fn
+    ("start_fn"), else the closure's start at the home setting ("home")."""
+    if start is not None:
+        return jnp.asarray(start, dtype=jnp.float64), "explicit"
+    if robot.closure.start_fn is not None:
+        return None, "start_fn"
+    return jnp.asarray(robot.closure.start, dtype=jnp.float64), "home"
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _solve_batched(robot: Robot, a, q, start) -> ClosureSolution:
+@functools.partial(jax.jit, static_argnums=(0, 4))
+def _solve_batched(robot: Robot, a, q, start, mode) -> ClosureSolution:
     def one(qi):
-        return _solve_single(robot, a, joint_variables(robot, a, qi), start)
+        return _solve_single(robot, a, joint_variables(robot, a, qi), start, mode)
 
     return map_leading_axes(one, q)
 
@@ -254,34 +321,42 @@ def solve(robot: Robot, a, q, start=None) -> ClosureSolution:
     checked_closure(robot)
     a = jnp.asarray(a, dtype=jnp.float64)
     q = jnp.asarray(q, dtype=jnp.float64)
-    return _solve_batched(robot, a, q, _start(robot, start))
+    return _solve_batched(robot, a, q, *_start(robot, start))
 
 
-def _forward_single(robot: Robot, a, qi, start) -> Pose:
-    qj = joint_variables(robot, a, qi)
-    sol = _solve_single(robot, a, qj, start)
-    f = tree_frames(robot, a, qj, sol.theta_free)
-    R, p = f.R[robot.tip], f.p[robot.tip]
-    p = jnp.where(sol.ok, p, jax.lax.stop_gradient(p) + FAIL_OFFSET)
-    R = jnp.where(sol.ok, R, jax.lax.stop_gradient(R))  # no derivative from a sample that did not close
+def failed_pose(pose: Pose, ok) -> Pose:
+    """The tool pose where ok, else a penalty pose: FAIL_OFFSET metres added to each coordinate and the
+    frame turned by FAIL_ROTATION, both without derivative. Finite, far from any reading of every
+    device kind (position, pose, orientation-only, angles, ranges), so a fit step that makes a sample
+    unclosable raises the cost and is rejected, as the thesis' Inf (§3.3)."""
+    sg = jax.lax.stop_gradient
+    p = jnp.where(ok, pose.p, sg(pose.p) + FAIL_OFFSET)
+    R = jnp.where(ok, pose.R, sg(pose.R) @ jnp.asarray(FAIL_ROTATION))
     return Pose(R, p)
 
 
-@functools.partial(jax.jit, static_argnums=0)
-def _forward_batched(robot: Robot, a, q, start) -> Pose:
-    return map_leading_axes(lambda qi: _forward_single(robot, a, qi, start), q)
+def _forward_single(robot: Robot, a, qi, start, mode) -> Pose:
+    qj = joint_variables(robot, a, qi)
+    sol = _solve_single(robot, a, qj, start, mode)
+    f = tree_frames(robot, a, qj, sol.theta_free)
+    return failed_pose(Pose(f.R[robot.tip], f.p[robot.tip]), sol.ok)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 4))
+def _forward_batched(robot: Robot, a, q, start, mode) -> Pose:
+    return map_leading_axes(lambda qi: _forward_single(robot, a, qi, start, mode), q)
 
 
 def forward_closed(robot: Robot, a, q, start=None) -> Pose:
     """Tool frame of a closed mechanism (closure solved inside) for q (..., n_inputs).
 
-    A sample whose loops do not close (|v| > tol) has FAIL_OFFSET added to its position; check
-    `solve(...).ok` or `closed(...)` for the flags.
+    A sample whose loops do not close on the nominal branch gets the penalty pose of `failed_pose`;
+    check `solve(...).ok` / `.status` or `closed(...)` for the flags.
     """
     checked_closure(robot)
     a = jnp.asarray(a, dtype=jnp.float64)
     q = jnp.asarray(q, dtype=jnp.float64)
-    return _forward_batched(robot, a, q, _start(robot, start))
+    return _forward_batched(robot, a, q, *_start(robot, start))
 
 
 def closed(robot: Robot, a, q, start=None):
@@ -291,6 +366,15 @@ def closed(robot: Robot, a, q, start=None):
     if own is not None and start is None:
         return own(robot, a, q).ok
     return solve(robot, a, q, start).ok
+
+
+def closure_status(robot: Robot, a, q, start=None):
+    """Per-sample status (`jaxcal.closure.track`: 0 CLOSED, 1 UNCLOSED, 2 OTHER_MODE), answered by a
+    mechanism-specific closure for itself as in `closed`."""
+    own = getattr(robot.closure, "solve", None)
+    if own is not None and start is None:
+        return own(robot, a, q).status
+    return solve(robot, a, q, start).status
 
 
 def all_frames(robot: Robot, a, q, start=None) -> Pose:

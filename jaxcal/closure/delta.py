@@ -35,7 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.closure.core import FAIL_OFFSET, Closure, ClosureSolution
+from jaxcal.closure.core import Closure, ClosureSolution, failed_pose
+from jaxcal.closure.track import CLOSED, OTHER_MODE, UNCLOSED, Tracked, track
 from jaxcal.kin.model import joint_variables
 from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import rot_x, rot_y
@@ -44,6 +45,8 @@ from jaxcal.linalg import solve_small
 CLOSURE_TOL = 1e-10  # closure residual norm above which a sample is infeasible (seed 004 §4.3)
 NEWTON_STEPS = 8
 NEWTON_TOL = 1e-12  # m; the final implicit step squares this
+BRANCH_RADIUS = 0.5  # rad: the fast path is trusted only this close (max norm) to the nominal direct-solution start
+TRACK_TOL = 1e-12  # m: residual norm each continuation corrector reaches
 
 
 @dataclasses.dataclass(frozen=True)
@@ -254,18 +257,32 @@ def _residual_and_jacobian(robot, st, fixed, x):
 
 
 def _newton(robot, st, fixed, x0):
-    """Newton on the square 5 x 5 sphere system until max |F| <= NEWTON_TOL (at most NEWTON_STEPS)."""
+    """Newton on the square 5 x 5 sphere system until max |F| <= NEWTON_TOL (at most NEWTON_STEPS):
+    (x, max |F| at the last point evaluated, iterations)."""
 
     def step(carry):
         x, _, i = carry
         F, J = _residual_and_jacobian(robot, st, fixed, x)
-        return x - solve_small(J, F), jnp.max(jnp.abs(F)), i + 1
+        err = jnp.max(jnp.abs(F))
+        return jnp.where(err > NEWTON_TOL, x - solve_small(J, F), x), err, i + 1
 
     def more(carry):
         _, err, i = carry
         return (err > NEWTON_TOL) & (i < NEWTON_STEPS)
 
-    return jax.lax.while_loop(more, step, (x0, jnp.inf, 0))[0]
+    return jax.lax.while_loop(more, step, (x0, jnp.inf, 0))
+
+
+def _homotopy_residual(robot, a, q):
+    """F(x, t) of the Delta whose parameters move from the nominal (t = 0) to a (t = 1) at actuator
+    joints q: the path `track` follows from the nominal branch (seed 004 §2.4, made robust)."""
+    a_ref = jnp.asarray(robot.nominal_np)
+
+    def fn(x, t):
+        st = _statics(robot, a_ref + t * (a - a_ref))
+        return _sphere_residual(robot, st, _fixed(robot, st, q), x)
+
+    return fn
 
 
 def _tool_offset(robot):
@@ -307,78 +324,118 @@ def structure_ok(robot, st):
     return jnp.max(jnp.abs(jnp.stack(dev))) <= 1e-12
 
 
-def solve_single(robot, a, q):
-    """Closed Delta for one actuator vector q (3,): (rod-1 joints x (5,), rod angles, tool Pose,
-    ok, closure residual norm). x is differentiable in a and q by the implicit function theorem.
+def _fast_single(robot, a, q):
+    """The fast path for one actuator vector q (3,) (a, q without derivative): the nominal
+    direct-solution start x0, Newton's result, whether the fast path is trusted (closed, and within
+    BRANCH_RADIUS of x0, i.e. on the nominal branch), whether it closed at all, and whether the
+    reduction applies (`structure_ok`, nominal direct solution feasible)."""
+    st = _statics(robot, a)
+    fixed = _fixed(robot, st, q)
+    x0, ok_start = _start(robot, st, q, fixed, _tool_offset(robot))
+    x_fast, err_fast, k_fast = _newton(robot, st, fixed, x0)
+    valid = ok_start & structure_ok(robot, st)
+    closes = valid & (err_fast <= NEWTON_TOL) & jnp.all(jnp.isfinite(x_fast))
+    fast_ok = closes & (jnp.max(jnp.abs(x_fast - x0)) <= BRANCH_RADIUS)
+    return jnp.where(jnp.isfinite(x0), x0, 0.0), x_fast, fast_ok, closes, valid, k_fast
+
+
+def free_joints(robot, a, qj):
+    """Rod-1 joints x (N, 5) closing the Delta at actuator joints qj (N, 3), without derivative, and
+    per sample (on the nominal branch, closes elsewhere only, iterations).
+
+    The fast path (Newton from the nominal direct solution) is kept where it closes on the nominal
+    branch; every other sample goes through the general path, `jaxcal.closure.track`'s continuation
+    from the nominal robot's closed configuration at the same setting. The continuation runs under a
+    `lax.cond` on the whole batch, so a batch the fast path closes pays nothing for it."""
+    a, qj = jax.lax.stop_gradient(a), jax.lax.stop_gradient(qj)
+    x0, x_fast, fast_ok, closes, valid, k_fast = jax.vmap(functools.partial(_fast_single, robot, a))(qj)
+    need = valid & ~fast_ok
+
+    def general():
+        run = lambda qi, xi, act: track(_homotopy_residual(robot, a, qi), xi, TRACK_TOL, active=act)  # noqa: E731
+        return jax.vmap(run)(qj, x0, need)
+
+    def skip():
+        zero = jnp.zeros(need.shape, bool)
+        return Tracked(x0, zero, jnp.zeros(need.shape, k_fast.dtype), zero)
+
+    tracked = jax.lax.cond(jnp.any(need), general, skip)
+    x = jnp.where(fast_ok[:, None], x_fast, tracked.theta)
+    finite = jnp.all(jnp.isfinite(x), axis=-1, keepdims=True)
+    on_branch = fast_ok | tracked.reached
+    return jnp.where(finite, x, x0), on_branch, closes & ~on_branch, k_fast + tracked.steps
+
+
+def _finish_single(robot, a, q, x_star, on_branch, elsewhere):
+    """Closed Delta for one actuator vector q (3,) from the solved rod-1 joints x_star: (rod-1
+    joints x (5,), rod angles, tool Pose, ok, closure residual norm, status). x is differentiable in
+    a and q by the implicit function theorem (one Newton step from the gradient-stopped x_star).
 
     With `structure_ok`, the closure residual of pair k (nacelle point minus rod end, the rod
     pointed at the point) has norm |F_k|, so |F| is the norm of all 15 closure residuals
     (a test checks this against `closure_error` on the whole tree)."""
     st = _statics(robot, a)
     fixed = _fixed(robot, st, q)
-    st_sg, q_sg = jax.tree_util.tree_map(jax.lax.stop_gradient, (st, q))
-    fixed_sg = jax.tree_util.tree_map(jax.lax.stop_gradient, fixed)
-    x0, ok_start = _start(robot, st_sg, q_sg, fixed_sg, _tool_offset(robot))
-    x_star = jax.lax.stop_gradient(_newton(robot, st_sg, fixed_sg, x0))
-    finite = jnp.all(jnp.isfinite(x_star))
-    x_star = jnp.where(finite, x_star, jnp.where(jnp.all(jnp.isfinite(x0)), x0, 0.0))
+    st_sg, fixed_sg = jax.tree_util.tree_map(jax.lax.stop_gradient, (st, fixed))
+    x_star = jax.lax.stop_gradient(x_star)
     F_star, J = _residual_and_jacobian(robot, st_sg, fixed_sg, x_star)
     x = x_star - solve_small(J, _sphere_residual(robot, st, fixed, x_star))  # zero step; carries dx/d(a, q)
     nacelle = _nacelle(robot, st, fixed, x)
     rods = _rod_angles(robot, st, fixed, nacelle)
-    err = jnp.where(finite, jnp.linalg.norm(F_star), jnp.inf)
-    ok = ok_start & finite & structure_ok(robot, st_sg) & (err <= CLOSURE_TOL)
-    return x, rods, nacelle.compose(_local(st, TOOL)), ok, err
+    err = jnp.linalg.norm(F_star)
+    err = jnp.where(jnp.isfinite(err), err, jnp.inf)
+    ok = on_branch & (err <= CLOSURE_TOL)
+    status = jnp.where(ok, CLOSED, jnp.where(elsewhere, OTHER_MODE, UNCLOSED))
+    return x, rods, nacelle.compose(_local(st, TOOL)), ok, err, status
 
 
-def _closed_single(robot, a, q):
-    """(tool Pose, theta_free in the Closure's order, closure residual norm, ok) for one q (3,)."""
-    x, rods, tool, ok, err = solve_single(robot, a, q)
-    theta_free = jnp.concatenate([x, jnp.stack(rods, axis=-1).ravel()])  # (q15, q16, q18, q19, ...)
-    return tool, theta_free, err, ok
-
-
-def _batch(fn, q):
+def _flat(q):
     q = jnp.asarray(q, dtype=jnp.float64)
-    if q.ndim == 1:
-        return fn(q)
-    lead = q.shape[:-1]
-    out = jax.vmap(fn)(q.reshape(-1, q.shape[-1]))
+    return q.reshape(-1, q.shape[-1]), q.shape[:-1]
+
+
+def _unflat(out, lead):
     return jax.tree_util.tree_map(lambda v: v.reshape(lead + v.shape[1:]), out)
 
 
 @functools.partial(jax.jit, static_argnums=0)
 def solve(robot, a, q) -> ClosureSolution:
     """Closure of the Table 4.6 Delta for actuator settings q (..., 3): free joints in the order
-    of `FREE` (15,), closure residual norm, ok flag, and the Newton iterations (constant here)."""
+    of `FREE` (15,), closure residual norm, ok flag, Newton iterations (fast path + continuation) and
+    status (`jaxcal.closure.track`: CLOSED, UNCLOSED or OTHER_MODE)."""
     a = jnp.asarray(a, dtype=jnp.float64)
+    qf, lead = _flat(q)
+    qj = jax.vmap(lambda qi: joint_variables(robot, a, qi))(qf)
+    x_star, on_branch, elsewhere, steps = free_joints(robot, a, qj)
 
-    def one(qi):
-        _, theta, err, ok = _closed_single(robot, a, joint_variables(robot, a, qi))
-        return ClosureSolution(theta, err, ok, jnp.asarray(NEWTON_STEPS))
+    def one(qi, xi, b, e, k):
+        x, rods, _, ok, err, status = _finish_single(robot, a, qi, xi, b, e)
+        theta = jnp.concatenate([x, jnp.stack(rods, axis=-1).ravel()])  # (q15, q16, q18, q19, ...)
+        return ClosureSolution(theta, err, ok, k, status)
 
-    return _batch(one, q)
+    return _unflat(jax.vmap(one)(qj, x_star, on_branch, elsewhere, steps), lead)
 
 
-def _pose_vector(robot, a, q):
-    """(R.ravel(), p) of the tool (12,) and the closure flag as 0/1 (aux)."""
-    _, _, tool, ok, _ = solve_single(robot, a, q)
+def _pose_vector(robot, a, q, pre):
+    """(R.ravel(), p) of the tool (12,) and the closure flag as 0/1 (aux); pre = (x_star, on_branch,
+    elsewhere) from `free_joints`."""
+    _, _, tool, ok, _, _ = _finish_single(robot, a, q, *pre)
     return jnp.concatenate([tool.R.ravel(), tool.p]), ok.astype(jnp.float64)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _tool_vector(robot, a, q):
-    return _pose_vector(robot, a, q)
+def _tool_vector(robot, a, q, pre):
+    return _pose_vector(robot, a, q, pre)
 
 
 @_tool_vector.defjvp
 def _tool_vector_jvp(robot, primals, tangents):
     """Tangent of the tool pose from its per-sample Jacobian by reverse mode (12 cotangents instead
     of one forward pass per parameter): under `jax.jacfwd` over ~170 parameters the Jacobian is
-    computed once per sample and contracted with every tangent."""
-    a, q = primals
-    da, dq = tangents
-    vec, pullback, ok = jax.vjp(functools.partial(_pose_vector, robot), a, q, has_aux=True)
+    computed once per sample and contracted with every tangent. pre has no derivative."""
+    a, q, pre = primals
+    da, dq, _ = tangents
+    vec, pullback, ok = jax.vjp(lambda a_, q_: _pose_vector(robot, a_, q_, pre), a, q, has_aux=True)
     Ja, Jq = jax.vmap(pullback)(jnp.eye(vec.shape[0]))
     return (vec, ok), (Ja @ da + Jq @ dq, jnp.zeros_like(ok))
 
@@ -386,15 +443,17 @@ def _tool_vector_jvp(robot, primals, tangents):
 @functools.partial(jax.jit, static_argnums=0)
 def forward(robot, a, q) -> Pose:
     """Tool pose of the Table 4.6 Delta for actuator settings q (..., 3), closure solved inside.
-    A sample that does not close gets FAIL_OFFSET added to its position (as `forward_closed`)."""
+    A sample that does not close is moved by `failed_pose` (as in `forward_closed`)."""
     a = jnp.asarray(a, dtype=jnp.float64)
+    qf, lead = _flat(q)
+    qj = jax.vmap(lambda qi: joint_variables(robot, a, qi))(qf)
+    pre = free_joints(robot, a, qj)[:3]
 
-    def one(qi):
-        vec, ok = _tool_vector(robot, a, joint_variables(robot, a, qi))
-        p = jnp.where(ok > 0, vec[9:], jax.lax.stop_gradient(vec[9:]) + FAIL_OFFSET)
-        return Pose(vec[:9].reshape(3, 3), p)
+    def one(qi, xi, b, e):
+        vec, ok = _tool_vector(robot, a, qi, (xi, b, e))
+        return failed_pose(Pose(vec[:9].reshape(3, 3), vec[9:]), ok > 0)
 
-    return _batch(one, q)
+    return _unflat(jax.vmap(one)(qj, *pre), lead)
 
 
 def closed(robot, a, q):

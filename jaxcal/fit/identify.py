@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.fit import core
+from jaxcal.fit.bias import ILL_CONDITIONED_BIAS, NOISE_DOMINATED, choose_bias, weakest_standard_error
 from jaxcal.fit.data import Dataset
 from jaxcal.fit.health import Health, assess
 from jaxcal.forward import forward
@@ -220,6 +221,7 @@ def identify(
     sample_weights=None,
     base_tol: float | None = None,
     outliers: str = "flag",
+    _unclosed_excluded: tuple = (),
 ) -> FitResult:
     """Identify robot and device parameters from a dataset, through the calibration core (`jaxcal.fit.core`).
 
@@ -230,7 +232,13 @@ def identify(
     solver: a name of `core.SOLVERS` ("lm" default, "lm_normal", "gn", "gn_normal", "dogleg", "bfgs") or an
     optimistix least-squares solver object.
     base: estimate only the base set of the free columns (seed 001 App. III); others stay at a0.
-    bias: mu, or a decreasing sequence of mu, for the term mu ||(x - x0)/scale||^2 (seed 004 eq 3.12).
+    bias: mu, or a decreasing sequence of mu, for the term mu ||(x - x0)/scale||^2 (seed 004 eq 3.12). Default
+    (None): no bias, unless the unbiased estimate is noise-dominated (some estimated parameter's linearised
+    standard error above `fit.bias.NOISE_DOMINATED` x its typical size: 1 mm / 1 mrad); then the schedule
+    `fit.bias.ILL_CONDITIONED_BIAS` (ending at mu = 1e-5, not 0: docs/delta.md shows it winning on new
+    settings) is used. "heldout": when noise-dominated, the end of the
+    schedule `fit.bias.BIAS_PATH` is chosen by k-fold held-out reading error (`fit.bias.choose_bias`). The
+    schedule used is in `info["bias_schedule"]`.
     bounds: {name: (low, high)} enforced by a penalty (seed 004 §3.3).
     multistart: number of extra random starts (vmapped), spread 1 cm / 0.01 rad around a0.
     sigma_position, sigma_orientation: residual weights 1/sigma (m, rad).
@@ -240,10 +248,16 @@ def identify(
     outliers: "flag" (default: samples failing the robust test are listed in `health` and warned about) or
     "exclude" (they are also left out, weight 0, and the fit is repeated once without them).
 
+    Closed mechanisms: samples that do not close at the start are left out; samples that do not close at the
+    solution are left out too and the fit is repeated once without them (`info["unclosed_at_solution"]`); both
+    are listed in `health.unclosed` (a warning: the report and the CLI exit code see it).
+
     Every result carries `health` (`jaxcal.fit.health.Health`): convergence, the residual against the stated
     sigmas, outliers, joint readings outside the limits, rank and conditioning, unclosed samples, and, when the
     residual is far above the stated noise, the joint columns that look swapped or sign-flipped.
     """
+    if isinstance(bias, str) and bias != "heldout":
+        raise ValueError(f"bias must be None, a number, a sequence of numbers or 'heldout', got {bias!r}")
     if outliers not in ("flag", "exclude"):
         raise ValueError(f"outliers must be 'flag' or 'exclude', got {outliers!r}")
     t_start = time.perf_counter()
@@ -268,8 +282,35 @@ def identify(
                                 free=free_mask, a_ref=np.concatenate([np.asarray(a0), np.asarray(d0)]), bounds=bounds,
                                 sample_weights=sw[keep] if sample_weights is not None else None)
     settings = core.Settings(solver, max_steps, rtol, atol)
-    cal = core.calibrate(problem, settings, base=base, bias=bias, multistart=multistart, seed=seed, base_tol=base_tol)
-    health = assess(cal, unclosed_start=unclosed, sample_index=keep, settings=settings)
+    cal = core.calibrate(problem, settings, base=base, bias=None if isinstance(bias, str) else bias, multistart=multistart,
+                         seed=seed, base_tol=base_tol)
+    bias_info = {}
+    if bias is None or (isinstance(bias, str) and bias == "heldout"):
+        weakest = weakest_standard_error(cal)
+        if weakest > NOISE_DOMINATED:  # noise-dominated estimate: stop the bias schedule above 0
+            if bias is None:
+                schedule = list(ILL_CONDITIONED_BIAS)
+            else:  # where the schedule stops, chosen by k-fold held-out error (`jaxcal.fit.bias`)
+                schedule, scores = choose_bias(problem, cal, settings)
+                bias_info["bias_heldout"] = scores.tolist()
+            bias_info.update(bias_schedule=schedule)
+            cal = core.calibrate(problem, settings, base=base, bias=schedule, multistart=multistart, seed=seed,
+                                 base_tol=base_tol)
+        bias_info["weakest_standard_error"] = weakest
+    health = assess(cal, unclosed_start=unclosed + tuple(_unclosed_excluded), sample_index=keep, settings=settings)
+    if robot.closure is not None and not _unclosed_excluded:
+        # re-check the closure at the solution: samples that do not close there are left out and the fit repeated
+        at_solution = tuple(i for i in health.unclosed if i not in unclosed)
+        if at_solution:
+            sw = sw.copy()
+            sw[list(at_solution)] = 0.0
+            kw = dict(free=free, known=known, a0=a0, device_params=device_params, solver=solver, base=base, bias=bias,
+                      bounds=bounds, multistart=multistart, seed=seed, sigma_position=sigma_position,
+                      sigma_orientation=sigma_orientation, max_steps=max_steps, rtol=rtol, atol=atol, history=history,
+                      base_tol=base_tol, outliers=outliers)
+            refit = identify(robot, full_data, sample_weights=sw, _unclosed_excluded=at_solution, **kw)
+            refit.info["unclosed_at_solution"] = at_solution
+            return refit
     if outliers == "exclude" and health.outliers:
         sw = sw.copy()
         sw[list(health.outliers)] = 0.0
@@ -277,7 +318,7 @@ def identify(
                   bounds=bounds, multistart=multistart, seed=seed, sigma_position=sigma_position,
                   sigma_orientation=sigma_orientation, max_steps=max_steps, rtol=rtol, atol=atol, history=history,
                   base_tol=base_tol)
-        refit = identify(robot, full_data, sample_weights=sw, outliers="flag", **kw)
+        refit = identify(robot, full_data, sample_weights=sw, outliers="flag", _unclosed_excluded=_unclosed_excluded, **kw)
         refit.info["excluded_outliers"] = health.outliers
         return refit
     hist = _history(problem, cal.x_frames, problem.args(cal.estimated, 0.0, cal.x_frames), settings) if history else None
@@ -307,7 +348,7 @@ def identify(
         info={"n_samples": len(data), "unclosed_samples": unclosed, "estimated_index": est_idx,
               "solver": solver if isinstance(solver, str) else type(solver).__name__,
               "sigma_position": sigma_position, "sigma_orientation": sigma_orientation,
-              "frames_converged": cal.frames_converged, "registered_start": cal.registered},
+              "frames_converged": cal.frames_converged, "registered_start": cal.registered, **bias_info},
     )
 
 

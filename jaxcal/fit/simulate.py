@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -34,6 +36,21 @@ def perturb(robot, scale=0.003, seed: int = 0, free_only: bool = True):
     return jnp.asarray(a)
 
 
+def warn_unclosed(robot, a, q) -> np.ndarray:
+    """Closure status per sample (`jaxcal.closure.closure_status`); warns naming the samples that do not close
+    (their readings are the penalty pose of `jaxcal.closure.failed_pose`, not a measurement)."""
+    from jaxcal.closure import STATUS_NAMES, closure_status
+
+    status = np.asarray(closure_status(robot, jnp.asarray(a, dtype=jnp.float64), jnp.asarray(q, dtype=jnp.float64)))
+    bad = np.flatnonzero(status != 0)
+    if bad.size:
+        kinds = ", ".join(f"{np.sum(status == k)} {STATUS_NAMES[k]}" for k in (1, 2) if np.any(status == k))
+        warnings.warn(f"{robot.name}: {bad.size} of {len(status)} simulated sample(s) do not close ({kinds}): "
+                      f"{bad[:20].tolist()}{' ...' if bad.size > 20 else ''}; their readings are penalty values, "
+                      "not measurements (identify leaves them out)", stacklevel=3)
+    return status
+
+
 def _noise_levels(noise):
     if noise is None:
         return 0.0, 0.0, 0.0
@@ -57,6 +74,8 @@ def simulate(robot, a_true, q, device="position", noise=None, device_params=None
     q = np.asarray(q, float)
     q_actual = q + s_q * rng.standard_normal(q.shape)
     tips = forward(robot, jnp.asarray(a_true, dtype=jnp.float64), q_actual)
+    if robot.closure is not None:
+        warn_unclosed(robot, a_true, q_actual)
     y = jax.vmap(dev.read, (0, None))(tips, d)
     y = np.asarray(dev.add_noise(y, rng.standard_normal, s_p, s_r))
     return Dataset(q=q, y=y, device=dev, joint_names=robot.joint_names)
