@@ -115,6 +115,7 @@ def test_huber_weights_down_weight_only_outlying_samples():
     assert np.allclose(w[:4], 1.0) and np.isclose(w[4], 1.5 * 1.4826 / 10.0)
 
 
+@pytest.mark.slow  # ~300 s on 2 loaded cores (nested folds of the TALOS variants): a study, kept out of the fast set for CI time
 def test_variant_choice_never_sees_the_held_out_samples():
     """Nested CV: the inner scores of every variant are computed from the training samples only, so
     corrupting the held-out samples' readings by 1 m leaves them unchanged to 1e-9 mm."""
