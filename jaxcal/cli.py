@@ -277,7 +277,8 @@ def expand_free(patterns, robot):
 
 def calibrated_robot_file(robot) -> str:
     """File name of the calibrated robot: URDF for robots that came from a URDF (a file or a
-    URDF-based built-in), else YAML in the layout the robot was read in (seed table, DH table, UR kinematics). The robot's name comes from its file, so it passes
+    URDF-based built-in), else YAML in the layout the robot was read in (seed table, DH table, UR kinematics).
+    The robot's name comes from its file, so it passes
     through `safe_filename` (no `/`, `..`, NUL or markup reaches the file system)."""
     from jaxcal.io_atomic import safe_filename
 

@@ -481,7 +481,8 @@ def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, 
 
 def solve_batch(problem: Problem, x0s, args, settings: Settings, batched) -> tuple:
     """A vmapped batch of solves of one problem's structure: `batched` names the leading-axis entries of
-    args (and "x0" for a batch of starts; `Problem.batch_args` for folds with their own priors). Returns (x (B, P), ok (B,), steps (B,), cost (B,), compile_s)."""
+    args (and "x0" for a batch of starts; `Problem.batch_args` for folds with their own priors).
+    Returns (x (B, P), ok (B,), steps (B,), cost (B,), compile_s)."""
     exe, dt = compiled_model_solver(x0s, args, problem.model, settings, batched)
     x, ok, steps, cost = exe(x0s, args)
     return np.asarray(x), np.asarray(ok), np.asarray(steps), np.asarray(cost), dt
@@ -621,4 +622,5 @@ def drop_unclosed(robot: Robot, a0, q) -> np.ndarray:
 __all__ = ["Calibration", "Problem", "RobotDevice", "SOLVERS", "Settings", "Solution", "calibrate", "choose_estimated",
            "compiled_model_solver", "compiled_solver", "drop_unclosed", "frames_estimated", "jacobian", "make_problem", "make_solver",
            "model_residuals", "model_stacked", "no_covariates", "registered_frame", "residuals", "rigid_registration",
-           "similarity_registration", "solve", "solve_batch", "solver_settings", "stacked", "stacked_basis", "stacked_scaled", "start", "weighted_residuals", "x_scale"]
+           "similarity_registration", "solve", "solve_batch", "solver_settings", "stacked", "stacked_basis",
+           "stacked_scaled", "start", "weighted_residuals", "x_scale"]

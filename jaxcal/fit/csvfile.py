@@ -20,11 +20,12 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import os
 import re
 import warnings
 
 import numpy as np
+
+from jaxcal.textfile import read_bytes
 
 LENGTH_SCALE = {"m": 1.0, "mm": 1e-3}
 ANGLE_SCALE = {"rad": 1.0, "deg": np.pi / 180.0}
@@ -119,14 +120,7 @@ def decode_text(raw: bytes, path: str) -> str:
 
 def read_text(path: str) -> str:
     """A text file's content (see `decode_text`); a missing or unreadable file is a DataError."""
-    if not os.path.exists(path):
-        raise DataError(f"{path}: no such file")
-    try:
-        with open(path, "rb") as fh:
-            raw = fh.read()
-    except OSError as exc:
-        raise DataError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    return decode_text(raw, path)
+    return decode_text(read_bytes(path, DataError), path)
 
 
 def _fields(line: str, delimiter: str, path: str, lineno: int) -> list[str]:

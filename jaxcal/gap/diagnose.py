@@ -46,8 +46,8 @@ import numpy as np
 import scipy.linalg
 import scipy.stats
 
-from jaxcal.fit.base import base_set
 from jaxcal.fit import core
+from jaxcal.fit.base import base_set
 from jaxcal.fit.data import Dataset
 from jaxcal.gap import fit as gf
 from jaxcal.gap import where as wh
@@ -148,7 +148,8 @@ class Diagnosis:
                      f" remainder {self.heldout_rms_after / max(self.noise_floor, 1e-300):.2f} x floor")
         if self.selected:
             lines.append("selected (greedy): " + "; ".join(f"{e}{'@' + ','.join(js) if js else ''}" for e, js in self.selected))
-        noise = "" if self.noise_p is None else f" (with the noise-figure test: fit residual vs instrument noise p = {self.noise_p:.3g})"
+        noise = ("" if self.noise_p is None
+                 else f" (with the noise-figure test: fit residual vs instrument noise p = {self.noise_p:.3g})")
         lines.append(f"structure left after the selected model: p = {self.structure_p:.3g}{noise}")
         for d in self.diverged:
             left = "; its held-out samples are left out of the scores" if d["fit"] != "all data" else ""

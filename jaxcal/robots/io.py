@@ -42,6 +42,7 @@ from jaxcal.robots.table import TABLE_CONVENTIONS, table_dict, table_robot
 from jaxcal.robots.ur import is_ur_kinematics, robot_from_ur, ur_dict
 from jaxcal.robots.urdf import load_urdf, save_urdf
 from jaxcal.robots.urdf_write import robot_urdf_text
+from jaxcal.textfile import read_bytes
 from jaxcal.yamlfile import load_yaml
 
 _COLUMNS = {
@@ -176,13 +177,7 @@ def load_robot(path: str, **kwargs):
     """Load a robot from YAML (seed table layouts) or URDF (`base=`, `tip=` link names)."""
     if str(path).lower().endswith(".urdf"):
         return load_urdf(path, **kwargs)
-    if not os.path.exists(path):
-        raise RobotFileError(f"{path}: no such file")
-    try:
-        with open(path, "rb") as fh:
-            raw = fh.read()
-    except OSError as exc:
-        raise RobotFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    raw = read_bytes(path, RobotFileError)
     try:
         doc = load_yaml(raw)
     except yaml.YAMLError as exc:

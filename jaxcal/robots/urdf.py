@@ -38,6 +38,7 @@ import numpy as np
 from jaxcal.kin import conventions as cv
 from jaxcal.kin.model import Body, Robot
 from jaxcal.robots.errors import RobotFileError
+from jaxcal.textfile import read_bytes
 
 _TYPE = {"revolute": "revolute", "continuous": "revolute", "prismatic": "prismatic", "fixed": "fixed"}
 
@@ -419,13 +420,7 @@ def _body_inertia(chain, joint, link_by_name, kind):
 def load_urdf(path: str, base: str | None = None, tip: str | None = None, name: str | None = None) -> Robot:
     """Robot of the chain from link `base` to link `tip` of a URDF file (see module docstring)."""
     path = str(path)
-    if not os.path.exists(path):
-        raise URDFError(f"{path}: no such file")
-    try:
-        with open(path, "rb") as fh:
-            raw = fh.read()
-    except OSError as exc:
-        raise URDFError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    raw = read_bytes(path, URDFError)
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
