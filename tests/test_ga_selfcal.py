@@ -161,11 +161,6 @@ def _mrr1_aims(direction, a_true=None, n=30):
     return rb, Q1, Q2, float(jnp.linalg.norm(t1 - t2))
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "regression of session 14, open: since the core solves in typical-size units with START_TOL (commit 93a5afa) the "
-    "determinacy at the start of the MRR-1 vertical-aim problem is rank 7 / base 6 / robot rank 3 (singular values "
-    "1.8e-4 and 1.7e-5 of the largest appear) instead of 5 / 5 / 0, and the refusal no longer holds; measured at "
-    "96c8d1f (5/5/0) vs 20c7acc (7/6/3)"))
 def test_mrr1_tool_z_pointer_is_refused():
     """MRR-1's tool z axis always points straight down: every aim line is vertical. Measured: QR base set 5
     (target1 x, y, z, target2 x, y) = SVD rank 5 under the same threshold; target2.z is dependent (only the

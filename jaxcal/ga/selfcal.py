@@ -115,8 +115,9 @@ def aim_problem(robot, aims, distances, *, direction=Z_AXIS, offset=ORIGIN, a0=N
     one number d for two targets; direction / offset: the pointer in the tool frame; a0: robot start
     (default nominal); free_idx: robot indices that may be estimated (default the robot's free mask);
     sigma / sigma_distance: standard deviations of the aim offsets and of the distances (weights 1/sigma).
-    The targets start at the least-squares intersection of their aim lines at a0 (min-norm when the lines
-    are parallel) and are all free."""
+    The targets start at the least-squares intersection of their aim lines at a0 and are all free; where the
+    lines are parallel, the point nearest the lines' mean origin (not the robot base, whose height would put
+    every target at one level, where the distances give no gradient along the lines)."""
     device = make_device("aim_line", targets=len(aims), direction=direction, offset=offset)
     if np.ndim(distances) == 0 and not isinstance(distances, dict):
         distances = {(0, 1): float(distances)}
@@ -125,7 +126,8 @@ def aim_problem(robot, aims, distances, *, direction=Z_AXIS, offset=ORIGIN, a0=N
     for Q in aims:
         o, u = (np.asarray(v) for v in _lines(robot, jnp.asarray(a0), jnp.asarray(Q), device.direction, device.offset))
         P = np.eye(3) - u[:, :, None] * u[:, None, :]
-        starts.append(np.linalg.lstsq(P.sum(0), np.einsum("kij,kj->i", P, o), rcond=None)[0])
+        c = o.mean(0)
+        starts.append(c + np.linalg.lstsq(P.sum(0), np.einsum("kij,kj->i", P, o - c), rcond=None)[0])
     q = np.concatenate([np.asarray(Q, float) for Q in aims] + [np.asarray(aims[0], float)[:1]])
     y = np.stack([device.aim_reading(i) for i, Q in enumerate(aims) for _ in range(len(Q))]
                  + [device.distance_reading(distances)])
