@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from jaxcal.closure.track import CLOSED, OTHER_MODE, UNCLOSED, corrector, damped_newton, track
+from jaxcal.closure.track import CLOSED, OTHER_MODE, UNCLOSED, Tracked, corrector, damped_newton, track
 from jaxcal.kin.model import Robot, frames_single, joint_variables, map_leading_axes
 from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import quat_from_matrix
@@ -209,17 +209,35 @@ def _direct_solve(robot: Robot, a, qj, start):
     return jnp.where(finite, sol.value, start), sol.stats["num_steps"]
 
 
-def _homotopy(robot: Robot, a, qj, from_home: bool):
+def _homotopy(robot: Robot, a, qj, from_home):
     """v(theta, t) along the path from the nominal robot (t = 0) to (a, qj) (t = 1): parameters
-    a_ref + t (a - a_ref), and, when the start is the home configuration's (`from_home`), actuated
-    joints qj_home + t (qj - qj_home); a per-sample start (start_fn) is already at qj."""
+    a_ref + t (a - a_ref), and, when the start is the home configuration's (`from_home`, a bool or a traced
+    flag), actuated joints qj_home + t (qj - qj_home); a per-sample start (start_fn) is already at qj."""
     a_ref = jnp.asarray(robot.nominal_np)
-    qj_ref = joint_variables(robot, a_ref, jnp.asarray(robot.home_np)) if from_home else qj
+    qj_ref = jnp.where(from_home, joint_variables(robot, a_ref, jnp.asarray(robot.home_np)), qj)
 
     def fn(theta, t):
         return closure_residual(robot, a_ref + t * (a - a_ref), qj_ref + t * (qj - qj_ref), theta)
 
     return fn
+
+
+def _continuation(robot: Robot, a, qj, start, from_home: bool, active) -> Tracked:
+    """`track` from the nominal closed configuration; from the home setting (`from_home`) first and, when the
+    start does not close there, again in the parameters only, at this setting. The two attempts are one
+    `track` in a loop of two turns (the second inactive unless needed), so XLA compiles the continuation once."""
+    tol = robot.closure.tol
+
+    def attempt(i, out):
+        again = i == 1
+        res = track(_homotopy(robot, a, qj, from_home & ~again), start, 0.01 * tol,
+                    active=active & (~again | (from_home & ~out.ref_ok)), loose=tol)
+        take = ~again | ~out.ref_ok
+        merged = jax.tree_util.tree_map(lambda new, old: jnp.where(take, new, old), res, out)
+        return merged._replace(steps=out.steps + res.steps)
+
+    none = Tracked(start, jnp.asarray(False), jnp.asarray(0), jnp.asarray(False))
+    return jax.lax.fori_loop(0, 2 if from_home else 1, attempt, none)
 
 
 def _is_closed(robot, a, qj, theta):
@@ -243,11 +261,7 @@ def _lm_solve(robot: Robot, a, qj, start, mode: str):
         th, k = _direct_solve(robot, a, qj, start)
         direct_ok = _is_closed(robot, a, qj, th)
     # continuation from the nominal closed configuration (at the home setting when the start is the home one)
-    tracked = track(_homotopy(robot, a, qj, mode == "home"), start, 0.01 * c.tol, active=~direct_ok, loose=c.tol)
-    if mode == "home":  # the start does not close at home: continue in the parameters only, at this setting
-        again = track(_homotopy(robot, a, qj, False), start, 0.01 * c.tol, active=~direct_ok & ~tracked.ref_ok, loose=c.tol)
-        tracked = jax.tree_util.tree_map(lambda u, v: jnp.where(tracked.ref_ok, u, v), tracked, again)._replace(
-            steps=tracked.steps + again.steps)
+    tracked = _continuation(robot, a, qj, start, mode == "home", ~direct_ok)
     th = jnp.where(direct_ok, th, tracked.theta)
     ok = direct_ok | (tracked.reached & _is_closed(robot, a, qj, th))
     # not closed on the branch: does a direct solve from the start close it (another assembly mode)?

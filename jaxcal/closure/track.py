@@ -56,9 +56,16 @@ class Tracked(NamedTuple):
     ref_ok: jnp.ndarray
 
 
+def value_and_jacobian(fn, x):
+    """(v, V) = (fn(x), dv/dx) by forward mode in one pass: the pushforwards of the unit vectors, vmapped, share
+    the primal evaluation (jacfwd with the value as auxiliary output traces fn twice, doubling what XLA compiles)."""
+    v, V = jax.vmap(lambda e: jax.jvp(fn, (x,), (e,)), out_axes=(None, -1))(jnp.eye(x.shape[0], dtype=x.dtype))
+    return v, V
+
+
 def _newton_step(fn, x):
     """(dx, |v|) of one Gauss-Newton step dx = -(V^T V)^-1 V^T v for the residual fn at x."""
-    V, v = jax.jacfwd(lambda z: (fn(z), fn(z)), has_aux=True)(x)
+    v, V = value_and_jacobian(fn, x)
     dx = -solve_small(V.T @ V, V.T @ v)
     return dx, jnp.linalg.norm(v)
 
@@ -97,8 +104,8 @@ def corrector(fn, x, tol, active=True, loose=None):
 
 def _tangent(fn_t, x, t):
     """d theta / dt = -(V^T V)^-1 V^T dv/dt at (x, t) (implicit function theorem, eq 2.65)."""
-    V = jax.jacfwd(lambda z: fn_t(z, t))(x)
-    _, dvdt = jax.jvp(lambda s: fn_t(x, s), (t,), (jnp.ones_like(t),))
+    _, Vt = value_and_jacobian(lambda zt: fn_t(zt[:-1], zt[-1]), jnp.append(x, t))  # [V, dv/dt] in one pass
+    V, dvdt = Vt[:, :-1], Vt[:, -1]
     d = -solve_small(V.T @ V, V.T @ dvdt)
     return jnp.where(_finite(d), d, 0.0)
 
@@ -148,7 +155,7 @@ def _damped(fn, start, tol, max_steps, active):
 
     def body(s):
         th, norm, mu, k = s
-        V, v = jax.jacfwd(lambda z: (fn(z), fn(z)), has_aux=True)(th)
+        v, V = value_and_jacobian(fn, th)
         norm = jnp.where(k == 0, jnp.linalg.norm(v), norm)
         trial = th - solve_small(V.T @ V + mu * eye, V.T @ v)
         trial_norm = jnp.linalg.norm(fn(trial))
