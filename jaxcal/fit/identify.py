@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.fit import core
+from jaxcal.fit import core, lm
 from jaxcal.fit.bias import ILL_CONDITIONED_BIAS, NOISE_DOMINATED, choose_bias, weakest_standard_error
 from jaxcal.fit.data import Dataset
 from jaxcal.fit.health import Health, assess
@@ -42,6 +42,18 @@ def _history_fns(robot, device, settings: core.Settings):
     """Jitted (init, step, done, cost) of one solver, built once per robot/device/settings: the data
     and weights are arguments, so every later call of `identify(history=True)` reuses the compile."""
     slv = core.make_solver(settings.solver, settings.rtol, settings.atol)
+    cost = jax.jit(lambda x, args: jnp.sum(core.stacked(robot, device, x, args) ** 2))
+    if isinstance(slv, lm.LevenbergMarquardt):
+        res = functools.partial(core.stacked, robot, device)
+
+        @jax.jit
+        def lm_step(x, state, args):
+            state = lm.step(res, state, args, slv.rtol, slv.atol)
+            return state.z, state
+
+        init = jax.jit(functools.partial(lm.init, res))
+        done = jax.jit(lambda x, state, args: state.converged | (state.lam >= lm.LAM_MAX))
+        return init, lm_step, done, cost
     fn = lambda x, a: (core.stacked(robot, device, x, a), None)  # noqa: E731
 
     def init(x, args):
@@ -50,12 +62,11 @@ def _history_fns(robot, device, settings: core.Settings):
 
     step = eqx.filter_jit(lambda x, s, args: slv.step(fn, x, args, {}, s, frozenset())[:2])
     done = eqx.filter_jit(lambda x, s, args: slv.terminate(fn, x, args, {}, s, frozenset())[0])
-    cost = jax.jit(lambda x, args: jnp.sum(fn(x, args)[0] ** 2))
     return init, step, done, cost
 
 
 def _history(problem: core.Problem, x0, args, settings: core.Settings):
-    """Cost after each solver step (for convergence plots), by stepping optimistix by hand."""
+    """Cost after each solver step (for convergence plots), by stepping the solver by hand."""
     init, step, done, cost = _history_fns(problem.robot, problem.device, settings)
     x0 = jnp.asarray(x0)
     state = init(x0, args)

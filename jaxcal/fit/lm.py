@@ -1,0 +1,113 @@
+"""Levenberg-Marquardt for the calibration core: the default solver ("lm") of `jaxcal.fit.core`.
+
+Minimises |r(z)|^2 over z (the core's unknowns in typical-size units, so one damping for every unknown). Each
+iteration takes the damped Gauss-Newton step (seed 001 eq 37; Madsen, Nielsen & Tingleff, "Methods for
+non-linear least squares problems", 2004, §3.2)
+
+    delta = argmin |r + J delta|^2 + lam |delta|^2,   solved as the least-squares problem [J; sqrt(lam) I] by QR,
+
+and the gain ratio rho = (|r|^2 - |r(z + delta)|^2) / (|r|^2 - |r + J delta|^2) decides: rho >= ACCEPT keeps the
+step and lowers the damping, lam <- lam max(1/3, 1 - (2 rho - 1)^3), nu <- 2; otherwise lam <- lam nu,
+nu <- 2 nu (Nielsen's update, eq 3.16 there). The start is lam = TAU max diag(J^T J).
+
+It stops (converged) after an accepted step that changes every z_i by at most atol + rtol |z_i| and every
+residual r_i by at most atol + rtol |r_i|, or after max_steps iterations (accepted and rejected) unconverged.
+Why not optimistix's LM, which the core used before: the same iteration compiled ~1.6x faster here (XLA, 2-core
+CPU: 3.7 s vs 5.9 s for the Stanford arm, 200 positions; 5.0 vs 7.0 s for poses), and compile time is most of
+a first calibration and of the test suite. The residual and its Jacobian come from one forward-mode pass.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+ACCEPT = 1e-3  # smallest gain ratio of an accepted step
+TAU = 1e-3  # initial damping relative to the largest diagonal entry of J^T J
+LAM_MAX = 1e30  # damping past which no step can change anything: stop, unconverged
+
+
+class LMResult(NamedTuple):
+    """z: the estimate; converged; steps: iterations taken (accepted and rejected); cost: |r(z)|^2."""
+
+    z: jnp.ndarray
+    converged: jnp.ndarray
+    steps: jnp.ndarray
+    cost: jnp.ndarray
+
+
+def residual_and_jacobian(fn: Callable, z, args):
+    """(r, J) = (fn(z, args), dr/dz): the pushforwards of the unit vectors, vmapped, share one primal pass."""
+    r, J = jax.vmap(lambda e: jax.jvp(lambda u: fn(u, args), (z,), (e,)), out_axes=(None, -1))(jnp.eye(z.shape[0], dtype=z.dtype))
+    return r, J
+
+
+def damped_step(J, r, lam):
+    """delta minimising |r + J delta|^2 + lam |delta|^2, by QR of the stacked matrix [J; sqrt(lam) I]."""
+    n = J.shape[1]
+    A = jnp.concatenate([J, jnp.sqrt(lam) * jnp.eye(n, dtype=J.dtype)])
+    Q, R = jnp.linalg.qr(A)
+    return jax.scipy.linalg.solve_triangular(R, -(Q[: J.shape[0]].T @ r), lower=False)
+
+
+class LMState(NamedTuple):
+    """The iteration's state: the current (accepted) point z with its residual r and Jacobian J, the damping
+    lam and its growth factor nu, iterations taken, and whether the last step met the stopping test."""
+
+    z: jnp.ndarray
+    r: jnp.ndarray
+    J: jnp.ndarray
+    lam: jnp.ndarray
+    nu: jnp.ndarray
+    steps: jnp.ndarray
+    converged: jnp.ndarray
+
+
+def init(fn: Callable, z0, args) -> LMState:
+    """The state at z0: lam = TAU max diag(J^T J) (TAU when J is 0)."""
+    r0, J0 = residual_and_jacobian(fn, z0, args)
+    lam0 = TAU * jnp.max(jnp.sum(J0**2, axis=0))
+    return LMState(z0, r0, J0, jnp.where(lam0 > 0, lam0, TAU), jnp.asarray(2.0, z0.dtype), jnp.asarray(0),
+                   jnp.asarray(False))
+
+
+def step(fn: Callable, s: LMState, args, rtol: float, atol: float) -> LMState:
+    """One iteration: the damped step, kept or not by its gain ratio, the damping updated (module docstring)."""
+    delta = damped_step(s.J, s.r, s.lam)
+    z_new = s.z + delta
+    r_new, J_new = residual_and_jacobian(fn, z_new, args)
+    cost, cost_new = s.r @ s.r, r_new @ r_new
+    predicted = cost - jnp.sum((s.r + s.J @ delta) ** 2)
+    actual = cost - cost_new
+    accepted = jnp.isfinite(cost_new) & (actual >= 0) & (actual >= ACCEPT * predicted)
+    rho = actual / jnp.where(predicted > 0, predicted, 1.0)
+    small = (jnp.all(jnp.abs(delta) <= atol + rtol * jnp.abs(z_new))
+             & jnp.all(jnp.abs(r_new - s.r) <= atol + rtol * jnp.abs(r_new)))
+    keep = lambda new, old: jnp.where(accepted, new, old)  # noqa: E731
+    return LMState(keep(z_new, s.z), keep(r_new, s.r), keep(J_new, s.J),
+                   jnp.where(accepted, s.lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), s.lam * s.nu),
+                   jnp.where(accepted, 2.0, 2.0 * s.nu), s.steps + 1, accepted & small)
+
+
+def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: float) -> LMResult:
+    """Minimise |fn(z, args)|^2 from z0 by Levenberg-Marquardt (see the module docstring)."""
+    s = jax.lax.while_loop(lambda s: ~s.converged & (s.steps < max_steps) & (s.lam < LAM_MAX),
+                           lambda s: step(fn, s, args, rtol, atol), init(fn, z0, args))
+    return LMResult(s.z, s.converged, s.steps, s.r @ s.r)
+
+
+@dataclasses.dataclass(frozen=True)
+class LevenbergMarquardt:
+    """This module's solver with its tolerances (hashable: it selects the compiled solver)."""
+
+    rtol: float
+    atol: float
+
+    def __call__(self, fn: Callable, z0, args, max_steps: int) -> LMResult:
+        return least_squares(fn, z0, args, max_steps=max_steps, rtol=self.rtol, atol=self.atol)
+
+
+__all__ = ["LMResult", "LMState", "LevenbergMarquardt", "damped_step", "init", "least_squares", "residual_and_jacobian", "step"]

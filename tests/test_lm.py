@@ -1,0 +1,66 @@
+"""jaxcal's Levenberg-Marquardt (jaxcal.fit.lm), the core's default solver."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from jaxcal.fit import lm
+
+
+def rosenbrock(z, args):
+    """Rosenbrock's valley as least squares: minimum 0 at (1, 1), reached only along the curved valley."""
+    return jnp.stack([args * (z[1] - z[0] ** 2), 1.0 - z[0]])
+
+
+def exponentials(z, t):
+    """Sum of two decaying exponentials, zero residual at z = (1, 0.5, 2, 3) for the data made below."""
+    return z[0] * jnp.exp(-z[2] * t) + z[1] * jnp.exp(-z[3] * t) - (jnp.exp(-2 * t) + 0.5 * jnp.exp(-3 * t))
+
+
+def test_reaches_the_minimum_of_rosenbrock_and_of_an_exponential_fit():
+    res = jax.jit(lambda z0: lm.least_squares(rosenbrock, z0, 10.0, max_steps=200, rtol=1e-10, atol=1e-12))(
+        jnp.array([-1.2, 1.0]))
+    assert bool(res.converged) and int(res.steps) < 100
+    np.testing.assert_allclose(np.asarray(res.z), [1.0, 1.0], atol=1e-9)
+    t = jnp.linspace(0.0, 2.0, 40)
+    res = lm.least_squares(exponentials, jnp.array([0.8, 0.7, 1.5, 3.5]), t, max_steps=200, rtol=1e-10, atol=1e-12)
+    assert bool(res.converged) and float(res.cost) < 1e-20
+    np.testing.assert_allclose(np.asarray(res.z), [1.0, 0.5, 2.0, 3.0], atol=1e-7)
+
+
+def test_agrees_with_optimistix_on_a_noisy_fit():
+    """Noisy data (nonzero residual at the optimum): both solvers stop at the same least-squares estimate."""
+    t = jnp.linspace(0.0, 2.0, 40)
+    noise = 1e-3 * jnp.asarray(np.random.default_rng(0).standard_normal(40))
+    fn = lambda z, t: exponentials(z, t) + noise  # noqa: E731
+    z0 = jnp.array([0.8, 0.7, 1.5, 3.5])
+    ours = lm.least_squares(fn, z0, t, max_steps=200, rtol=1e-10, atol=1e-12)
+    theirs = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12), z0, t, max_steps=200, throw=False)
+    assert bool(ours.converged) and theirs.result == optx.RESULTS.successful
+    np.testing.assert_allclose(np.asarray(ours.z), np.asarray(theirs.value), atol=1e-7)
+    assert abs(float(ours.cost) - float(jnp.sum(fn(theirs.value, t) ** 2))) < 1e-12
+
+
+def test_unconverged_after_max_steps_and_converged_at_an_exact_start():
+    short = lm.least_squares(rosenbrock, jnp.array([-1.2, 1.0]), 10.0, max_steps=3, rtol=1e-10, atol=1e-12)
+    assert not bool(short.converged) and int(short.steps) == 3
+    exact = lm.least_squares(rosenbrock, jnp.array([1.0, 1.0]), 10.0, max_steps=50, rtol=1e-10, atol=1e-12)
+    assert bool(exact.converged) and int(exact.steps) == 1 and np.asarray(exact.z).tolist() == [1.0, 1.0]
+
+
+def test_residual_and_jacobian_is_jacfwd():
+    z = jnp.array([0.3, -0.7, 1.1, 2.5])
+    t = jnp.linspace(0.0, 2.0, 7)
+    r, J = lm.residual_and_jacobian(exponentials, z, t)
+    np.testing.assert_array_equal(np.asarray(r), np.asarray(exponentials(z, t)))
+    np.testing.assert_allclose(np.asarray(J), np.asarray(jax.jacfwd(exponentials)(z, t)), rtol=1e-14, atol=1e-15)
+
+
+def test_vmapped_batch_equals_single_solves():
+    starts = jnp.array([[-1.2, 1.0], [0.5, 0.5], [2.0, 3.0]])
+    batch = jax.vmap(lambda z0: lm.least_squares(rosenbrock, z0, 10.0, max_steps=200, rtol=1e-10, atol=1e-12))(starts)
+    for i, z0 in enumerate(starts):
+        one = lm.least_squares(rosenbrock, z0, 10.0, max_steps=200, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(batch.z[i]), np.asarray(one.z), atol=1e-12)
+        assert int(batch.steps[i]) == int(one.steps)
