@@ -48,7 +48,8 @@ def test_local_transform_jacobians_match_finite_differences(name, kind):
 @pytest.mark.parametrize("name,kind", CASES, ids=[f"{n}-{k}" for n, k in CASES])
 def test_joint_queries_agree_with_the_transform(name, kind):
     """The first joint variable adds to row[joint_row_index]; a one-input joint moves along or about
-    joint_axis (body frame, or the parent's when axis_in_parent_frame), about a point on the axis that is the parent's or the body's origin."""
+    joint_axis (body frame, or the parent's when axis_in_parent_frame), about a point on the axis that is the parent's
+    or the body's origin."""
     conv = get_convention(name)
     row, qv = _sample(conv, kind, 11)
     assert conv.is_fixed(kind) == (conv.n_inputs(kind) == 0)

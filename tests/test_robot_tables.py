@@ -273,10 +273,13 @@ joints:
 
 
 @pytest.mark.parametrize("change, message", [
-    (("standard_dh", "standard_hd"), r"robot.yaml: field 'convention': unknown convention 'standard_hd' \(did you mean 'standard_dh'\?\)"),
+    (("standard_dh", "standard_hd"),
+     r"robot.yaml: field 'convention': unknown convention 'standard_hd' \(did you mean 'standard_dh'\?\)"),
     (("theta, d, a, alpha]", "theta, d, alpha]"), r"robot.yaml: field 'columns': missing column\(s\) \['a'\]"),
-    (("[j2, j1, R, 0, 0, 0.3, 0]", "[j1, j1, R, 0, 0, 0.3, 0]"), r"robot.yaml, row 2 \(line 5\), field 'name': joint 'j1' given twice"),
-    (("[j1, base,", "[j1, j3,"), r"robot.yaml, field 'parent': the parents form a cycle j1 -> j3 -> j2 -> j1 \(.*robot.yaml, row 1 \(line 4\)\)"),
+    (("[j2, j1, R, 0, 0, 0.3, 0]", "[j1, j1, R, 0, 0, 0.3, 0]"),
+     r"robot.yaml, row 2 \(line 5\), field 'name': joint 'j1' given twice"),
+    (("[j1, base,", "[j1, j3,"),
+     r"robot.yaml, field 'parent': the parents form a cycle j1 -> j3 -> j2 -> j1 \(.*robot.yaml, row 1 \(line 4\)\)"),
     (("[j3, j2,", "[j3, j4,"), r"robot.yaml, row 3 \(line 6\), field 'parent': no row named 'j4'"),
     (("0.2, 0]", "zero, 0]"), r"robot.yaml, row 3 \(line 6\), field 'a': not a number: 'zero'"),
     (("0.3, 0]", "0.3]"), r"robot.yaml, row 2 \(line 5\): expected 7 fields"),
