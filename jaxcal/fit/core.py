@@ -260,9 +260,17 @@ def _model_jacobian(model, x, q, y, cov, w):
     return jax.jacfwd(lambda a: model.residuals(a, q, y, cov, w).reshape(-1))(x)
 
 
+def per_sample(w, n: int) -> np.ndarray:
+    """Weights (m,) of every sample as the (n, m) array (float64, not weak-typed): one argument shape for
+    the compiled residuals and Jacobian whether a caller passes per-component or per-sample weights (on the
+    Delta, the second compile of the residuals cost ~11 s)."""
+    w = np.asarray(w, float)
+    return np.broadcast_to(w, (n, w.shape[0])) if w.ndim == 1 else w
+
+
 def model_residuals(model, x, q, y, cov, w) -> np.ndarray:
     """The residual model's weighted residuals (N, m) at x, as a numpy array."""
-    return np.asarray(_model_rows(model, *(jnp.asarray(v) for v in (x, q, y, cov, w))))
+    return np.asarray(_model_rows(model, *(jnp.asarray(v) for v in (x, q, y, cov, per_sample(w, len(q))))))
 
 
 def no_covariates(n: int) -> np.ndarray:
@@ -278,7 +286,7 @@ def weighted_residuals(robot, device, a_full, q, y, w) -> np.ndarray:
 def jacobian(robot, device, a_full, q, y, w) -> np.ndarray:
     """d(weighted residual)/d(a_full), (N*m, P), by forward-mode autodiff."""
     return np.asarray(_model_jacobian(RobotDevice(robot, device), *(jnp.asarray(v) for v in
-                                                                     (a_full, q, y, no_covariates(len(q)), w))))
+                                                                     (a_full, q, y, no_covariates(len(q)), per_sample(w, len(q))))))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
