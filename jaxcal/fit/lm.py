@@ -1,8 +1,9 @@
 """Levenberg-Marquardt for the calibration core: the default solver ("lm") of `jaxcal.fit.core`.
 
 Minimises |r(z)|^2 over z (the core's unknowns in typical-size units, so one damping for every unknown). Each
-iteration takes the damped Gauss-Newton step (seed 001 eq 37; Madsen, Nielsen & Tingleff, "Methods for
-non-linear least squares problems", 2004, §3.2)
+iteration takes the damped Gauss-Newton step (the identification solver of seed 004 §3 and of the nonlinear
+methods surveyed in seed 000 §2; the update follows Madsen, Nielsen & Tingleff, "Methods for non-linear least
+squares problems", 2004, §3.2)
 
     delta = argmin |r + J delta|^2 + lam |delta|^2,   solved as the least-squares problem [J; sqrt(lam) I] by QR,
 
