@@ -29,6 +29,16 @@ DEVICE_POSITION = (1.2, -0.9, 0.6)  # 1.6 m from the base
 THEODOLITE_POSITION = (2.6, 1.3, 0.5)  # 2.9 m: the instrument looks at the robot from a distance
 
 
+# A two-joint URDF (revolute z then y, limits +-3 and +-2 rad): the valid input the bad-input tests break.
+TWO_JOINT_URDF = """<robot name="two">
+  <link name="base"/><link name="l1"/><link name="tool"/>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><origin xyz="0 0 0.2"/><axis xyz="0 0 1"/>
+    <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <joint name="j2" type="revolute"><parent link="l1"/><child link="tool"/><origin xyz="0.3 0 0"/><axis xyz="0 1 0"/>
+    <limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+</robot>
+"""
+
 def cells():
     """Every supported (robot, device) pair, in grid order."""
     return [(r, d) for r in ROBOTS for d in DEVICES if (r, d) not in UNSUPPORTED]

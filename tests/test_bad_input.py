@@ -6,6 +6,7 @@ import os
 
 import numpy as np
 import pytest
+from helpers import TWO_JOINT_URDF
 
 import jaxcal as jc
 from jaxcal.cli import main
@@ -19,14 +20,7 @@ joints:
   - [0.25, 0, 0, 0, 0, 0, revolute]
   - [0.0, 0, 0, 0, 0, 0, prismatic]
 """
-GOOD_URDF = """<robot name="two">
-  <link name="base"/><link name="l1"/><link name="tool"/>
-  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><origin xyz="0 0 0.2"/><axis xyz="0 0 1"/>
-    <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
-  <joint name="j2" type="revolute"><parent link="l1"/><child link="tool"/><origin xyz="0.3 0 0"/><axis xyz="0 1 0"/>
-    <limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
-</robot>
-"""
+GOOD_URDF = TWO_JOINT_URDF
 
 
 def _csv_lines(n=12):

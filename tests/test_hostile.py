@@ -19,6 +19,7 @@ import warnings
 
 import numpy as np
 import pytest
+from helpers import TWO_JOINT_URDF
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -34,14 +35,7 @@ from jaxcal.robots.urdf import URDFError, robot_from_urdf
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 # -- inputs ---------------------------------------------------------------------------------------------
-URDF = """<robot name="two">
-  <link name="base"/><link name="l1"/><link name="tool"/>
-  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><origin xyz="0 0 0.2"/><axis xyz="0 0 1"/>
-    <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
-  <joint name="j2" type="revolute"><parent link="l1"/><child link="tool"/><origin xyz="0.3 0 0"/><axis xyz="0 1 0"/>
-    <limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
-</robot>
-"""
+URDF = TWO_JOINT_URDF
 ROBOT_YAML = """name: arm
 convention: pry
 units: {length: m, angle: deg}
