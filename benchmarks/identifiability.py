@@ -6,7 +6,7 @@ iterated linearised least squares vs Levenberg-Marquardt. One process; first cal
 1. Stanford (nine methods) and MRR-1 (position, location): identifiable count, cond(W_b), the
    observability indices and the time of `jc.identifiable` (first call, then median of repeats).
 2. Stanford + position: 15 configurations chosen by `select_configurations` vs random 15-subsets.
-3. GECARO (dx = -W_b^+ r, seed 001 eq 9-10) vs LM (optimistix) on the same noise-free Stanford
+3. GECARO (dx = -W_b^+ r, seed 001 eq 9-10) vs LM (jaxcal.fit.lm) on the same noise-free Stanford
    position data: iterations, final RMS, parameter error, time, and success over error scales.
 """
 

@@ -143,21 +143,21 @@ class Calibration:
 
 @functools.partial(jax.jit, static_argnames=("robot", "method", "nr", "max_steps"))
 def _lm_on_base(x, idx, Qi, Qj, Y, *, robot, method, nr, max_steps):
-    """optimistix LM on the base entries x[idx] (the others fixed); compiled once per robot/method/shapes.
+    """Levenberg-Marquardt (`jaxcal.fit.lm`, the core's solver) on the base entries x[idx], the others fixed;
+    compiled once per robot/method/shapes.
 
-    Not the calibration core's solver: a GECARO method's residual (seed 001 §3) runs over pairs of
-    configurations (point/frame link, plane link 2, distance) and the method's plane coefficients, which a
+    The iteration is the core's, the problem is not: a GECARO method's residual (seed 001 §3) runs over pairs
+    of configurations (point/frame link, plane link 2, distance) and the method's plane coefficients, which a
     core `Problem` (one configuration and one device reading per sample) cannot express."""
-    import optimistix as optx
-
+    from jaxcal.fit import lm
     from jaxcal.fit.methods import stacked_residual
 
     def fn(xb, _):
         xf = x.at[idx].set(xb)
         return stacked_residual(robot, method, xf[:nr], xf[nr:], Qi, Qj, Y)
 
-    sol = optx.least_squares(fn, optx.LevenbergMarquardt(rtol=1e-12, atol=1e-15), x[idx], max_steps=max_steps, throw=False)
-    return sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+    sol = lm.least_squares(fn, x[idx], None, max_steps=max_steps, rtol=1e-12, atol=1e-15)
+    return sol.z, sol.steps, sol.converged
 
 
 def calibrate(robot: Robot, points, a0=None, c0=None, priority=None, include_gains=True, solver="gecaro",
@@ -165,7 +165,7 @@ def calibrate(robot: Robot, points, a0=None, c0=None, priority=None, include_gai
     """Identify the base parameters of a method from generated/measured `points` (a `Points`).
 
     solver "gecaro": iterated linearised least squares on W_b (seed 001 eq 9-10: dx = -W_b^+ r,
-    W_b and r updated each iteration); "lm": optimistix Levenberg-Marquardt on the same base
+    W_b and r updated each iteration); "lm": Levenberg-Marquardt (`jaxcal.fit.lm`) on the same base
     columns. Parameters outside the base set stay at a0. c0: start for the plane coefficients
     (unknown-plane methods; default the points' plane). The base set comes from `identifiable`
     at a0 (n_configs generated points, seed): measured points satisfy the constraint only for
