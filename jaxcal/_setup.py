@@ -1,9 +1,10 @@
 """Process-wide JAX settings: float64 everywhere; a persistent compilation cache only on request.
 
-The cache is off unless JAXCAL_CACHE names a folder (or is 1, for ~/.cache/jaxcal/xla) or
-`jaxcal.enable_compilation_cache` is called: jax writes cache entries in place, without a
-temporary file and rename, so a process killed mid-write or a concurrent reader can see a torn
-entry.
+Importing jaxcal keeps no compiled code on disk unless JAXCAL_CACHE names a folder (or is 1, for
+~/.cache/jaxcal/xla) or `jaxcal.enable_compilation_cache` is called. The cache is
+`jaxcal.xla_cache.AtomicFileCache` (entries written by rename and checked by SHA-256 on read), so
+concurrent and killed processes can share a folder. The `jaxcal` command turns it on by default
+(`cli.cache_folder`).
 """
 
 from __future__ import annotations
@@ -21,11 +22,10 @@ DEFAULT_CACHE_DIR = os.path.join(os.path.expanduser("~"), ".cache", "jaxcal", "x
 
 def enable_compilation_cache(path: str | None = None) -> str:
     """Keep compiled XLA code in `path` (default ~/.cache/jaxcal/xla) across processes; returns the folder."""
+    from jaxcal.xla_cache import install
+
     path = path or DEFAULT_CACHE_DIR
-    os.makedirs(path, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", path)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    install(path)
     return path
 
 

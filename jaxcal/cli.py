@@ -17,7 +17,7 @@ import sys
 import time
 import warnings
 
-from jaxcal._setup import enable_compilation_cache
+from jaxcal._setup import DEFAULT_CACHE_DIR, cache_dir_from_env, enable_compilation_cache
 from jaxcal.fit.core import SOLVERS
 from jaxcal.fit.csvfile import prismatic_joints
 
@@ -548,10 +548,22 @@ fraction = _number_type(float, lambda v: 0 <= v < 1, "a number in [0, 1)")
 folds_int = _number_type(int, lambda v: v >= 2, "an integer >= 2")
 
 
+def cache_folder(option: str | None, no_cache: bool, env: str | None) -> str | None:
+    """Where the command keeps compiled code: --cache DIR, else none with --no-cache or JAXCAL_CACHE=0,
+    else JAXCAL_CACHE's folder, else the default folder (the cache is safe to share: jaxcal.xla_cache)."""
+    if option:
+        return option
+    if no_cache or env in ("", "0"):
+        return None
+    return cache_dir_from_env(env) or DEFAULT_CACHE_DIR
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = Parser(prog="jaxcal", description="Differentiable robot calibration in JAX.")
-    p.add_argument("--cache", metavar="DIR", help="keep compiled XLA code in DIR across runs (off by default; "
-                   "jax writes entries in place, so do not share DIR between concurrent runs)")
+    cache = p.add_mutually_exclusive_group()
+    cache.add_argument("--cache", metavar="DIR", help="folder of the compiled XLA code kept across runs "
+                       f"(default {DEFAULT_CACHE_DIR}, or JAXCAL_CACHE; safe to share between concurrent runs)")
+    cache.add_argument("--no-cache", action="store_true", help="keep no compiled code on disk (as JAXCAL_CACHE=0)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
 
     c = sub.add_parser("calibrate", help="identify a robot from a measurement CSV; write results, report, calibrated robot")
@@ -665,8 +677,9 @@ def main(argv=None) -> int:
         parser.print_help()
         return 0
     try:
-        if args.cache:
-            enable_compilation_cache(args.cache)
+        folder = cache_folder(args.cache, args.no_cache, os.environ.get("JAXCAL_CACHE"))
+        if folder:
+            enable_compilation_cache(folder)
         return args.func(args)
     except _input_errors() as exc:  # anything a subcommand did not catch itself
         return _fail(exc)

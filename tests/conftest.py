@@ -2,6 +2,7 @@ import faulthandler
 import os
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("JAXCAL_CACHE", "0")  # `jaxcal` commands run in-process keep nothing in ~/.cache
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402

@@ -34,3 +34,74 @@ def test_cli_cache_option_fills_the_folder(tmp_path):
             f"main(['--cache', {str(folder)!r}, 'simulate', 'mrr1', '--n', '5', '--out', {str(tmp_path / 's.csv')!r}])")
     run_python(code, tmp_path)
     assert any(folder.iterdir())
+
+
+def test_a_torn_or_altered_entry_is_a_miss_and_is_removed(tmp_path):
+    from jaxcal.xla_cache import DIGEST, AtomicFileCache
+
+    cache = AtomicFileCache(tmp_path)
+    cache.put("k1", b"executable bytes")
+    assert cache.get("k1") == b"executable bytes"
+    assert cache.get("absent") is None
+    whole = cache.entry("k1").read_bytes()
+    assert len(whole) == len(b"executable bytes") + DIGEST
+    cache.entry("k1").write_bytes(whole[:-5])  # a writer killed mid-file
+    assert cache.get("k1") is None and not cache.entry("k1").exists()
+    cache.put("k1", b"executable bytes")
+    cache.entry("k1").write_bytes(b"X" + whole[1:])  # one byte changed
+    assert cache.get("k1") is None
+    cache.entry("k2").write_bytes(b"")
+    assert cache.get("k2") is None
+    assert not list(tmp_path.glob(".tmp-*"))
+
+
+def test_stale_temporaries_of_killed_writers_are_removed(tmp_path):
+    from jaxcal.xla_cache import AtomicFileCache
+
+    old, fresh = tmp_path / ".tmp-old", tmp_path / ".tmp-fresh"
+    old.write_bytes(b"half")
+    fresh.write_bytes(b"half")
+    os.utime(old, (0, 0))
+    AtomicFileCache(tmp_path)
+    assert not old.exists() and fresh.exists()  # a fresh one may be a live writer's
+
+
+COMPILE = ("import jax, jax.numpy as jnp, jaxcal; jaxcal.enable_compilation_cache({folder!r}); "
+           "from jax._src import monitoring; hits = []; "
+           "monitoring.register_event_listener(lambda e, **k: hits.append(e) if e.endswith('cache_hits') else None); "
+           "f = jax.jit(lambda x: jnp.sin(x) @ jnp.cos(x).T + {c}); print(float(f(jnp.ones((3, 3)))[0, 0]), len(hits))")
+
+
+def test_concurrent_processes_share_a_folder_and_a_later_one_reads_it(tmp_path):
+    """Two processes compile the same function into one folder at once; a third loads it from there;
+    a torn entry left in the folder is compiled again, not loaded."""
+    folder = str(tmp_path / "xla")
+    clean = {k: v for k, v in os.environ.items() if k != "JAXCAL_CACHE"} | {"HOME": str(tmp_path), "PYTHONPATH": REPO}
+    code = COMPILE.format(folder=folder, c=1.0)
+    procs = [subprocess.Popen([sys.executable, "-c", code], env=clean, stdout=subprocess.PIPE, text=True) for _ in range(2)]
+    outs = [p.communicate(timeout=300)[0].split() for p in procs]
+    assert all(p.returncode == 0 for p in procs)
+    entries = [e for e in os.listdir(folder) if not e.startswith(".")]
+    assert entries and not [e for e in os.listdir(folder) if e.startswith(".tmp-")]
+    value, hits = run_python(code, tmp_path).split()
+    assert value == outs[0][0] == outs[1][0] and int(hits) >= 1
+    for e in entries:
+        path = os.path.join(folder, e)
+        with open(path, "rb") as f:
+            data = f.read()
+        with open(path, "wb") as f:
+            f.write(data[: len(data) // 2])
+    value, hits = run_python(code, tmp_path).split()
+    assert value == outs[0][0] and int(hits) == 0
+
+
+def test_the_command_keeps_compiled_code_by_default_unless_told_not_to():
+    from jaxcal._setup import DEFAULT_CACHE_DIR
+    from jaxcal.cli import cache_folder
+
+    assert cache_folder(None, False, None) == DEFAULT_CACHE_DIR
+    assert cache_folder(None, False, "1") == DEFAULT_CACHE_DIR
+    assert cache_folder(None, False, "/x") == "/x"
+    assert cache_folder("/y", False, "0") == "/y"
+    assert cache_folder(None, True, "/x") is None
+    assert cache_folder(None, False, "0") is None
