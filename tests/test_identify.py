@@ -94,6 +94,10 @@ def test_history_and_report():
     data = jc.simulate(rb, jc.perturb(rb, 0.003, seed=1), jc.random_configurations(rb, 20, seed=2), "pose")
     fit = jc.identify(rb, data, known=("dev",), history=True)
     assert fit.history[0] > 1e3 * fit.history[-1]
+    # the solve's own record: the start and one cost per step, never rising; a multi-start records a solve from the start
+    assert len(fit.history) == fit.iterations + 1 and np.all(np.diff(fit.history) <= 1e-12 * fit.history[0])
+    ms = jc.identify(rb, data, known=("dev",), history=True, multistart=2)
+    np.testing.assert_allclose(ms.history, fit.history, rtol=1e-9, atol=1e-12 * fit.history[0])
     text = fit.report() + fit.parameter_table()
     assert "mrr1" in text and "undetermined" in text
     assert fit.timings["compile_s"] >= 0 and fit.timings["run_s"] > 0

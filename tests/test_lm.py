@@ -64,3 +64,18 @@ def test_vmapped_batch_equals_single_solves():
         one = lm.least_squares(rosenbrock, z0, 10.0, max_steps=200, rtol=1e-10, atol=1e-12)
         np.testing.assert_allclose(np.asarray(batch.z[i]), np.asarray(one.z), atol=1e-12)
         assert int(batch.steps[i]) == int(one.steps)
+
+
+def test_history_is_the_cost_after_each_step():
+    """The history recorded in the loop is what stepping `lm.step` by hand gives, then NaN."""
+    z0, steps = jnp.array([-1.2, 1.0]), 60
+    hist = np.asarray(lm.least_squares(rosenbrock, z0, 10.0, max_steps=steps, rtol=1e-10, atol=1e-12).history)
+    s = lm.init(rosenbrock, z0, 10.0)
+    by_hand = [float(s.r @ s.r)]
+    while not bool(s.converged) and int(s.steps) < steps:
+        s = lm.step(rosenbrock, s, 10.0, 1e-10, 1e-12)
+        by_hand.append(float(s.r @ s.r))
+    n = len(by_hand)
+    assert hist.shape == (steps + 1,) and n < steps
+    np.testing.assert_allclose(hist[:n], by_hand, rtol=1e-8, atol=1e-14)  # eager vs compiled rounding
+    assert np.all(np.isnan(hist[n:])) and hist[n - 1] < 1e-20

@@ -89,12 +89,18 @@ def x_scale(units) -> np.ndarray:
     return np.array([1.0 if u in ("gain", "scale") else 0.01 for u in units])
 
 
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def readings(robot: Robot, device: Device, a_full, q):
+    """Readings (N, ...) the model expects at joint values q (N, n) for the full vector a_full = [robot, device].
+    Compiled (robot and device static): called eagerly, the kinematics would run op by op."""
+    nr = robot.n_params
+    return jax.vmap(device.read, (0, None))(forward(robot, a_full[:nr], q), a_full[nr:])
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
 def residuals(robot: Robot, device: Device, a_full, q, y, w):
     """Weighted residuals (N, m) of all samples: w * (measured - predicted)."""
-    nr = robot.n_params
-    tips = forward(robot, a_full[:nr], q)
-    pred = jax.vmap(device.read, (0, None))(tips, a_full[nr:])
-    return jax.vmap(device.residual)(pred, y) * w
+    return jax.vmap(device.residual)(readings(robot, device, a_full, q), y) * w
 
 
 @dataclasses.dataclass(frozen=True)
@@ -196,7 +202,8 @@ def solver_settings(solver="lm", max_steps: int | None = None, rtol: float | Non
 
 def _solve_one(x0, args, model, settings: Settings):
     """One LM run from x0: in z = (x - a_ref) / x_scale (`stacked_scaled`), or in the basis args["S"] when
-    args has one (`stacked_basis`). Returns (x, converged, steps, final cost)."""
+    args has one (`stacked_basis`). Returns (x, converged, steps, final cost, cost history): the history is
+    `lm.LMResult.history` for the core's LM, empty (shape (0,)) for the optimistix solvers."""
     slv = make_solver(settings.solver, settings.rtol, settings.atol)
     if "S" in args:
         fn = functools.partial(stacked_basis, model)
@@ -207,10 +214,11 @@ def _solve_one(x0, args, model, settings: Settings):
         z0 = (x0 - args["a_ref"]) / args["x_scale"]
         to_x = lambda z: args["a_ref"] + args["x_scale"] * z  # noqa: E731
     if isinstance(slv, LevenbergMarquardt):
-        z, converged, steps, cost = slv(fn, z0, args, settings.max_steps)
-        return to_x(z), converged, steps, cost
+        z, converged, steps, cost, history = slv(fn, z0, args, settings.max_steps)
+        return to_x(z), converged, steps, cost, history
     sol = optx.least_squares(fn, slv, z0, args, max_steps=settings.max_steps, throw=False)
-    return to_x(sol.value), sol.result == optx.RESULTS.successful, sol.stats["num_steps"], jnp.sum(fn(sol.value, args) ** 2)
+    return (to_x(sol.value), sol.result == optx.RESULTS.successful, sol.stats["num_steps"], jnp.sum(fn(sol.value, args) ** 2),
+            jnp.zeros(0, z0.dtype))
 
 
 @functools.partial(jax.jit, static_argnames=("model", "settings", "batched"))
@@ -452,8 +460,7 @@ def registered_frame(problem: Problem, a_full) -> np.ndarray | None:
         return None
     x = np.array(a_full, float)
     x[robot.n_params + np.asarray(idx)] = 0.0  # identity frame: the readings are then the model's points
-    tips = forward(robot, jnp.asarray(x[:robot.n_params]), jnp.asarray(problem.q[used]))
-    pred = np.asarray(jax.vmap(device.read, (0, None))(tips, jnp.asarray(x[robot.n_params:])))
+    pred = np.asarray(readings(robot, device, jnp.asarray(x), jnp.asarray(problem.q[used])))
     P, Y = device.points(pred).reshape(-1, 3), Y.reshape(-1, 3)
     ok = np.all(np.isfinite(P), axis=1) & np.all(np.isfinite(Y), axis=1)
     P, Y = P[ok], Y[ok]
@@ -472,13 +479,15 @@ def registered_frame(problem: Problem, a_full) -> np.ndarray | None:
 
 @dataclasses.dataclass(frozen=True)
 class Solution:
-    """One solver run: the full vector, whether the solver met its tolerance, its steps and final cost."""
+    """One solver run: the full vector, whether the solver met its tolerance, its steps and final cost; history:
+    the cost at the start and after each step (the core's LM; empty for the optimistix solvers)."""
 
     x: np.ndarray
     converged: bool
     steps: int
     cost: float
     compile_s: float
+    history: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
 
 def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, ref=None) -> Solution:
@@ -487,9 +496,10 @@ def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, 
     args = problem.args(estimated, mu, ref)
     x0 = jnp.asarray(x0, jnp.float64)
     exe, dt = compiled_model_solver(x0, args, problem.model, settings)
-    x, ok, steps, cost = exe(x0, args)
+    x, ok, steps, cost, history = exe(x0, args)
     x = np.where(np.asarray(args["mask"]) > 0, np.asarray(x), np.asarray(ref))
-    return Solution(x, bool(ok), int(steps), float(cost), dt)
+    history = np.asarray(history)
+    return Solution(x, bool(ok), int(steps), float(cost), dt, history[np.isfinite(history)])
 
 
 def solve_batch(problem: Problem, x0s, args, settings: Settings, batched) -> tuple:
@@ -497,7 +507,7 @@ def solve_batch(problem: Problem, x0s, args, settings: Settings, batched) -> tup
     args (and "x0" for a batch of starts; `Problem.batch_args` for folds with their own priors).
     Returns (x (B, P), ok (B,), steps (B,), cost (B,), compile_s)."""
     exe, dt = compiled_model_solver(x0s, args, problem.model, settings, batched)
-    x, ok, steps, cost = exe(x0s, args)
+    x, ok, steps, cost, _ = exe(x0s, args)
     return np.asarray(x), np.asarray(ok), np.asarray(steps), np.asarray(cost), dt
 
 
@@ -543,7 +553,8 @@ class Calibration:
     x: full vector (robot, device); x_frames: the start (nominal robot, frames fitted); estimated /
     undetermined / no_effect / regrouped: index arrays into the full vector; J: weighted Jacobian at x
     (all columns); converged: every solver stage met its tolerance; iterations: steps of the last stage
-    set; registered: the device frame came from the rigid registration."""
+    set; registered: the device frame came from the rigid registration; history: the solver's cost at the start
+    and after each step of every bias stage (the core's LM without multi-start; else empty)."""
 
     problem: Problem
     x: np.ndarray
@@ -559,6 +570,7 @@ class Calibration:
     registered: bool
     compile_s: float
     run_s: float
+    history: np.ndarray
 
 
 def choose_estimated(problem: Problem, J, base: bool, base_tol: float | None):
@@ -592,7 +604,7 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
     compile_s = 0.0 if frames_sol is None else frames_sol.compile_s
     J0 = problem.jacobian(x_frames)
     est, undetermined, no_effect, regrouped = choose_estimated(problem, J0, base, base_tol)
-    x, iterations, converged = x_frames, 0, True
+    x, iterations, converged, histories = x_frames, 0, True, []
     for mu in bias_schedule(bias):
         if multistart:
             args = problem.args(est, mu, x_frames)
@@ -606,14 +618,16 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
                            float(costs[best]), dt)
         else:
             sol = solve(problem, x, est, settings, mu, ref=x_frames)
+        histories.append(sol.history)
         x, compile_s = sol.x, compile_s + sol.compile_s
         iterations += sol.steps
         converged = converged and sol.converged
     J = problem.jacobian(x)
     run_s = time.perf_counter() - t0 - compile_s
     frames_ok = True if frames_sol is None else frames_sol.converged
+    history = np.concatenate(histories) if histories and all(h.size for h in histories) else np.zeros(0)
     return Calibration(problem, x, x_frames, est, undetermined, no_effect, regrouped, J, converged, frames_ok, iterations,
-                       registered, compile_s, run_s)
+                       registered, compile_s, run_s, history)
 
 
 def drop_unclosed(robot: Robot, a0, q) -> np.ndarray:

@@ -23,7 +23,6 @@ from jaxcal.fit import core, lm
 from jaxcal.fit.bias import ILL_CONDITIONED_BIAS, NOISE_DOMINATED, choose_bias, weakest_standard_error
 from jaxcal.fit.data import Dataset
 from jaxcal.fit.health import Health, assess
-from jaxcal.forward import forward
 from jaxcal.kin.model import Robot
 from jaxcal.measure.devices import Device
 from jaxcal.names import check_names
@@ -39,21 +38,10 @@ def residual_weights(device: Device, sigma_position=1e-3, sigma_orientation=1e-3
 
 @functools.lru_cache(maxsize=16)
 def _history_fns(robot, device, settings: core.Settings):
-    """Jitted (init, step, done, cost) of one solver, built once per robot/device/settings: the data
+    """Jitted (init, step, done, cost) of an optimistix solver, built once per robot/device/settings: the data
     and weights are arguments, so every later call of `identify(history=True)` reuses the compile."""
     slv = core.make_solver(settings.solver, settings.rtol, settings.atol)
     cost = jax.jit(lambda x, args: jnp.sum(core.stacked(robot, device, x, args) ** 2))
-    if isinstance(slv, lm.LevenbergMarquardt):
-        res = functools.partial(core.stacked, robot, device)
-
-        @jax.jit
-        def lm_step(x, state, args):
-            state = lm.step(res, state, args, slv.rtol, slv.atol)
-            return state.z, state
-
-        init = jax.jit(functools.partial(lm.init, res))
-        done = jax.jit(lambda x, state, args: state.converged | (state.lam >= lm.LAM_MAX))
-        return init, lm_step, done, cost
     fn = lambda x, a: (core.stacked(robot, device, x, a), None)  # noqa: E731
 
     def init(x, args):
@@ -66,7 +54,8 @@ def _history_fns(robot, device, settings: core.Settings):
 
 
 def _history(problem: core.Problem, x0, args, settings: core.Settings):
-    """Cost after each solver step (for convergence plots), by stepping the solver by hand."""
+    """Cost after each step of an optimistix solver (for convergence plots), by stepping it by hand (the core's
+    LM records its history in the solve itself: `core.Calibration.history`)."""
     init, step, done, cost = _history_fns(problem.robot, problem.device, settings)
     x0 = jnp.asarray(x0)
     state = init(x0, args)
@@ -134,8 +123,7 @@ class FitResult:
 
     def predict(self, q):
         """Readings the fitted model expects at joint values q, in the device frame."""
-        tips = forward(self.robot, self.a, jnp.atleast_2d(jnp.asarray(q, dtype=jnp.float64)))
-        return np.asarray(jax.vmap(self.device.read, (0, None))(tips, self.device_params))
+        return np.asarray(core.readings(self.robot, self.device, self.a_full, jnp.atleast_2d(jnp.asarray(q, dtype=jnp.float64))))
 
     def errors(self, data: Dataset):
         """Per-sample (position m, orientation rad) errors of this model on a dataset."""
@@ -332,7 +320,14 @@ def identify(
         refit = identify(robot, full_data, sample_weights=sw, outliers="flag", _unclosed_excluded=_unclosed_excluded, **kw)
         refit.info["excluded_outliers"] = health.outliers
         return refit
-    hist = _history(problem, cal.x_frames, problem.args(cal.estimated, 0.0, cal.x_frames), settings) if history else None
+    hist = None
+    if history:  # the solve's own record; after a multi-start, a single solve from the start; optimistix: by hand
+        if cal.history.size:
+            hist = cal.history
+        elif isinstance(core.make_solver(settings.solver, settings.rtol, settings.atol), lm.LevenbergMarquardt):
+            hist = core.solve(problem, cal.x_frames, cal.estimated, settings).history
+        else:
+            hist = _history(problem, cal.x_frames, problem.args(cal.estimated, 0.0, cal.x_frames), settings)
 
     nominal_p, nominal_o = _rms_mm(problem, problem.a_ref)
     before_p, before_o = _rms_mm(problem, cal.x_frames)

@@ -32,12 +32,14 @@ LAM_MAX = 1e30  # damping past which no step can change anything: stop, unconver
 
 
 class LMResult(NamedTuple):
-    """z: the estimate; converged; steps: iterations taken (accepted and rejected); cost: |r(z)|^2."""
+    """z: the estimate; converged; steps: iterations taken (accepted and rejected); cost: |r(z)|^2; history: |r|^2
+    at z0 and after each iteration (a rejected step repeats the cost), NaN past the last, shape (max_steps + 1,)."""
 
     z: jnp.ndarray
     converged: jnp.ndarray
     steps: jnp.ndarray
     cost: jnp.ndarray
+    history: jnp.ndarray
 
 
 def residual_and_jacobian(fn: Callable, z, args):
@@ -95,9 +97,16 @@ def step(fn: Callable, s: LMState, args, rtol: float, atol: float) -> LMState:
 
 def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: float) -> LMResult:
     """Minimise |fn(z, args)|^2 from z0 by Levenberg-Marquardt (see the module docstring)."""
-    s = jax.lax.while_loop(lambda s: ~s.converged & (s.steps < max_steps) & (s.lam < LAM_MAX),
-                           lambda s: step(fn, s, args, rtol, atol), init(fn, z0, args))
-    return LMResult(s.z, s.converged, s.steps, s.r @ s.r)
+    s0 = init(fn, z0, args)
+
+    def body(carry):
+        s, hist = carry
+        s = step(fn, s, args, rtol, atol)
+        return s, hist.at[s.steps].set(s.r @ s.r)
+
+    s, hist = jax.lax.while_loop(lambda c: ~c[0].converged & (c[0].steps < max_steps) & (c[0].lam < LAM_MAX), body,
+                                 (s0, jnp.full(max_steps + 1, jnp.nan, z0.dtype).at[0].set(s0.r @ s0.r)))
+    return LMResult(s.z, s.converged, s.steps, s.r @ s.r, hist)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,4 +120,5 @@ class LevenbergMarquardt:
         return least_squares(fn, z0, args, max_steps=max_steps, rtol=self.rtol, atol=self.atol)
 
 
-__all__ = ["LMResult", "LMState", "LevenbergMarquardt", "damped_step", "init", "least_squares", "residual_and_jacobian", "step"]
+__all__ = ["LMResult", "LMState", "LevenbergMarquardt", "damped_step",
+           "init", "least_squares", "residual_and_jacobian", "step"]
