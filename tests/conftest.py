@@ -9,6 +9,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import jaxcal  # noqa: E402,F401  (float64)
+from jaxcal import compiled  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
@@ -17,6 +18,18 @@ jax.config.update("jax_enable_x64", True)
 WATCHDOG_FAST_S = 900
 WATCHDOG_SLOW_S = 3600
 _watchdog_fd = None
+
+
+# A worker that keeps every executable it compiled reaches Linux's vm.max_map_count (65,530) after ~8,000 and
+# is aborted by the next compile (jaxcal/compiled.py): past this many mappings the compiled code is dropped.
+MAX_MAPPED_REGIONS = 30_000
+
+
+@pytest.fixture(autouse=True)
+def _drop_compiled_code_near_the_mapping_limit():
+    yield
+    if compiled.mapped_regions() > MAX_MAPPED_REGIONS:
+        compiled.clear()
 
 
 def pytest_configure(config):

@@ -4,6 +4,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SHOW = "import jax, jaxcal; print(jax.config.jax_enable_x64, jax.config.jax_compilation_cache_dir)"
 
@@ -105,3 +107,25 @@ def test_the_command_keeps_compiled_code_by_default_unless_told_not_to():
     assert cache_folder("/y", False, "0") == "/y"
     assert cache_folder(None, True, "/x") is None
     assert cache_folder(None, False, "0") is None
+
+
+def test_clearing_compiled_code_gives_back_its_memory_mappings():
+    """Each executable holds mappings (jaxcal/compiled.py); `compiled.clear` drops jax's and jaxcal's."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxcal import compiled
+    from jaxcal.fit import core
+
+    if compiled.mapped_regions() < 0:
+        pytest.skip("no /proc/self/maps")
+    compiled.clear()
+    before = compiled.mapped_regions()
+    fns = [jax.jit(lambda x, k=k: jnp.sin(x) * k + jnp.cos(x @ x.T) @ x) for k in range(40)]
+    for k, f in enumerate(fns):
+        f(jnp.ones((3 + k, 3))).block_until_ready()
+    core._COMPILED["probe"] = jax.jit(lambda x: x + 1).lower(1.0).compile()
+    grown = compiled.mapped_regions()
+    compiled.clear()
+    assert grown - before > 100, (before, grown)
+    assert compiled.mapped_regions() - before < 0.1 * (grown - before) and "probe" not in core._COMPILED

@@ -41,6 +41,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
+from jaxcal import compiled
 from jaxcal.fit.base import base_set
 from jaxcal.fit.csvfile import DataError
 from jaxcal.fit.lm import LevenbergMarquardt
@@ -233,6 +234,7 @@ def _solve_jit(x0, args, *, model, settings, batched):
 
 _COMPILED: collections.OrderedDict = collections.OrderedDict()
 _COMPILED_MAX = 64  # compiled solvers kept per process (least recently used first out)
+compiled.register(_COMPILED.clear)
 
 
 def compiled_model_solver(x0, args, model, settings: Settings, batched=()):
@@ -480,7 +482,8 @@ def registered_frame(problem: Problem, a_full) -> np.ndarray | None:
 @dataclasses.dataclass(frozen=True)
 class Solution:
     """One solver run: the full vector, whether the solver met its tolerance, its steps and final cost; history:
-    the cost at the start and after each step (the core's LM; empty for the optimistix solvers)."""
+    the cost at the start and after each step (the core's LM; empty for the optimistix solvers); estimated: the
+    indices it moved."""
 
     x: np.ndarray
     converged: bool
@@ -488,6 +491,7 @@ class Solution:
     cost: float
     compile_s: float
     history: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    estimated: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, int))
 
 
 def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, ref=None) -> Solution:
@@ -499,7 +503,7 @@ def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, 
     x, ok, steps, cost, history = exe(x0, args)
     x = np.where(np.asarray(args["mask"]) > 0, np.asarray(x), np.asarray(ref))
     history = np.asarray(history)
-    return Solution(x, bool(ok), int(steps), float(cost), dt, history[np.isfinite(history)])
+    return Solution(x, bool(ok), int(steps), float(cost), dt, history[np.isfinite(history)], np.asarray(estimated, int))
 
 
 def solve_batch(problem: Problem, x0s, args, settings: Settings, batched) -> tuple:
@@ -554,7 +558,9 @@ class Calibration:
     undetermined / no_effect / regrouped: index arrays into the full vector; J: weighted Jacobian at x
     (all columns); converged: every solver stage met its tolerance; iterations: steps of the last stage
     set; registered: the device frame came from the rigid registration; history: the solver's cost at the start
-    and after each step of every bias stage (the core's LM without multi-start; else empty)."""
+    and after each step of every bias stage (the core's LM without multi-start; else empty); frames_fitted: the
+    device parameters the start fitted (with the robot at its prior), some of which the main fit may hold
+    (`undetermined`) at those fitted values."""
 
     problem: Problem
     x: np.ndarray
@@ -571,6 +577,8 @@ class Calibration:
     compile_s: float
     run_s: float
     history: np.ndarray
+    J0: np.ndarray  # weighted Jacobian at x_frames (the base set's)
+    frames_fitted: np.ndarray
 
 
 def choose_estimated(problem: Problem, J, base: bool, base_tol: float | None):
@@ -597,12 +605,19 @@ def bias_schedule(bias) -> list[float]:
 
 
 def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool = True, bias=None, multistart: int = 0,
-              seed: int = 0, base_tol: float | None = None) -> Calibration:
-    """The calibration path every client uses: start, base set at the start, bias stages (and multi-start)."""
+              seed: int = 0, base_tol: float | None = None, started: Calibration | None = None) -> Calibration:
+    """The calibration path every client uses: start, base set at the start, bias stages (and multi-start).
+    started: an earlier calibration of the same problem and settings, whose start (and its Jacobian) is reused."""
     t0 = time.perf_counter()
-    x_frames, frames_sol, registered = start(problem, settings)
-    compile_s = 0.0 if frames_sol is None else frames_sol.compile_s
-    J0 = problem.jacobian(x_frames)
+    if started is not None and started.problem is problem:
+        x_frames, registered, J0, frames_ok, compile_s, frames_fitted = (
+            started.x_frames, started.registered, started.J0, started.frames_converged, 0.0, started.frames_fitted)
+    else:
+        x_frames, frames_sol, registered = start(problem, settings)
+        J0 = problem.jacobian(x_frames)
+        frames_ok = True if frames_sol is None else frames_sol.converged
+        compile_s = 0.0 if frames_sol is None else frames_sol.compile_s
+        frames_fitted = np.zeros(0, int) if frames_sol is None else frames_sol.estimated
     est, undetermined, no_effect, regrouped = choose_estimated(problem, J0, base, base_tol)
     x, iterations, converged, histories = x_frames, 0, True, []
     for mu in bias_schedule(bias):
@@ -624,10 +639,9 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
         converged = converged and sol.converged
     J = problem.jacobian(x)
     run_s = time.perf_counter() - t0 - compile_s
-    frames_ok = True if frames_sol is None else frames_sol.converged
     history = np.concatenate(histories) if histories and all(h.size for h in histories) else np.zeros(0)
     return Calibration(problem, x, x_frames, est, undetermined, no_effect, regrouped, J, converged, frames_ok, iterations,
-                       registered, compile_s, run_s, history)
+                       registered, compile_s, run_s, history, J0, frames_fitted)
 
 
 def drop_unclosed(robot: Robot, a0, q) -> np.ndarray:

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal import compiled
 from jaxcal.fit import core, lm
 from jaxcal.fit.bias import ILL_CONDITIONED_BIAS, NOISE_DOMINATED, choose_bias, weakest_standard_error
 from jaxcal.fit.data import Dataset
@@ -51,6 +52,9 @@ def _history_fns(robot, device, settings: core.Settings):
     step = eqx.filter_jit(lambda x, s, args: slv.step(fn, x, args, {}, s, frozenset())[:2])
     done = eqx.filter_jit(lambda x, s, args: slv.terminate(fn, x, args, {}, s, frozenset())[0])
     return init, step, done, cost
+
+
+compiled.register(_history_fns.cache_clear)
 
 
 def _history(problem: core.Problem, x0, args, settings: core.Settings):
@@ -92,7 +96,7 @@ class FitResult:
     converged: bool
     jacobian: np.ndarray  # weighted residual Jacobian at the solution, all columns of a_full
     estimated: tuple[str, ...]  # parameters estimated (the base set among the free ones)
-    undetermined: tuple[str, ...]  # free parameters the data could not separate (kept at prior)
+    undetermined: tuple[str, ...]  # free parameters the main fit could not separate (kept at prior, or see held_at_start)
     no_effect: tuple[str, ...]
     regrouped: tuple[str, ...]
     weak_directions: list  # near-zero singular directions at the solution: (sigma, {name: weight})
@@ -102,6 +106,7 @@ class FitResult:
     covariance: np.ndarray | None = None  # linearised covariance of the estimated parameters (seed 004 eq 3.31-3.32)
     info: dict = dataclasses.field(default_factory=dict)
     health: Health | None = None  # convergence, residual vs stated noise, outliers, limits, rank, closure (`fit.health`)
+    held_at_start: tuple[str, ...] = ()  # undetermined device parameters fitted by the start (frames only), then held
 
     @property
     def std_errors(self) -> dict:
@@ -116,6 +121,15 @@ class FitResult:
         units = dict(zip(self.names, tuple(self.robot.units) + tuple(self.device.units)))
         out = [n for n, se in self.std_errors.items() if se > relative * (1.0 if units[n] in ("gain", "scale") else 0.01)]
         return out + list(self.undetermined)
+
+    def status(self, name: str) -> str:
+        """"estimated", "fitted at start, held" (a device parameter the start fitted that the main fit could not
+        separate from robot parameters), "undetermined" (kept at its prior) or "fixed"."""
+        if name in self.estimated:
+            return "estimated"
+        if name in self.held_at_start:
+            return "fitted at start, held"
+        return "undetermined" if name in self.undetermined else "fixed"
 
     @property
     def a_full(self):
@@ -148,11 +162,10 @@ class FitResult:
             head += f"{'true':>13}{'error':>12}"
         lines = [head + "  status"]
         for i, n in enumerate(self.names):
-            status = "estimated" if n in self.estimated else ("undetermined" if n in self.undetermined else "fixed")
             line = f"{n:<14}{nom[i]:>13.6g}{est[i]:>13.6g}{est[i] - nom[i]:>12.3e}"
             if tru is not None:
                 line += (f"{tru[i]:>13.6g}{est[i] - tru[i]:>12.3e}" if i < len(tru) else " " * 25)
-            lines.append(line + "  " + status)
+            lines.append(line + "  " + self.status(n))
         return "\n".join(lines)
 
     def report(self) -> str:
@@ -167,8 +180,12 @@ class FitResult:
             f"iterations {self.iterations}, converged {self.converged}, "
             f"compile {self.timings.get('compile_s', 0):.2f} s, run {self.timings.get('run_s', 0) * 1e3:.1f} ms",
         ]
-        if self.undetermined:
-            lines.append(f"undetermined (kept at prior): {', '.join(self.undetermined)}")
+        prior = [n for n in self.undetermined if n not in self.held_at_start]
+        if prior:
+            lines.append(f"undetermined (kept at prior): {', '.join(prior)}")
+        if self.held_at_start:
+            lines.append(f"fitted with the nominal robot, then held (not separable from robot parameters): "
+                         f"{', '.join(self.held_at_start)}")
         return "\n".join(lines)
 
 
@@ -294,7 +311,7 @@ def identify(
                 bias_info["bias_heldout"] = scores.tolist()
             bias_info.update(bias_schedule=schedule)
             cal = core.calibrate(problem, settings, base=base, bias=schedule, multistart=multistart, seed=seed,
-                                 base_tol=base_tol)
+                                 base_tol=base_tol, started=cal)
         bias_info["weakest_standard_error"] = weakest
     health = assess(cal, unclosed_start=unclosed + tuple(_unclosed_excluded), sample_index=keep, settings=settings)
     if robot.closure is not None and not _unclosed_excluded:
@@ -351,6 +368,7 @@ def identify(
         regrouped=to_names(cal.regrouped), weak_directions=_weak_directions(Je, to_names(est_idx)),
         timings={"compile_s": cal.compile_s, "run_s": cal.run_s, "total_s": time.perf_counter() - t_start},
         history=hist, sigma=sigma_hat, covariance=covariance, health=health,
+        held_at_start=to_names(i for i in cal.undetermined if i in set(cal.frames_fitted.tolist())),
         info={"n_samples": len(data), "unclosed_samples": unclosed, "estimated_index": est_idx,
               "solver": solver if isinstance(solver, str) else type(solver).__name__,
               "sigma_position": sigma_position, "sigma_orientation": sigma_orientation,

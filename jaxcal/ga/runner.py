@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal import compiled
 from jaxcal.fit.data import Dataset
 from jaxcal.fit.identify import residual_weights
 from jaxcal.ga import batched, core
@@ -64,6 +65,8 @@ def engine(robot: Robot, device, free_idx: tuple, fitness_kind: str, w1: float, 
 
 
 _COMPILED = {}
+compiled.register(_COMPILED.clear)
+compiled.register(engine.cache_clear)
 
 
 def compiled_for_shapes(fn, *args):

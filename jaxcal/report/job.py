@@ -59,7 +59,8 @@ def identifiability_summary(fit) -> dict:
     return {
         "free": int(len(fit.estimated) + len(fit.undetermined)),
         "estimated": len(fit.estimated),
-        "undetermined": list(fit.undetermined),
+        "undetermined": [n for n in fit.undetermined if n not in fit.held_at_start],
+        "held_at_start": list(fit.held_at_start),
         "regrouped": list(fit.regrouped),
         "no_effect": list(fit.no_effect),
         "condition_number_scaled": cond,
@@ -76,7 +77,7 @@ def parameter_rows(fit) -> list[dict]:
     units = tuple(fit.robot.units) + tuple(fit.device.units)
     rows = []
     for i, n in enumerate(fit.names):
-        status = "estimated" if n in fit.estimated else ("undetermined" if n in fit.undetermined else "fixed")
+        status = fit.status(n)
         rows.append({"name": n, "unit": units[i], "nominal": float(nom[i]), "identified": float(est[i]),
                      "change": float(est[i] - nom[i]), "std_error": float(se[n]) if n in se else None, "status": status})
     return rows
@@ -263,6 +264,9 @@ def job_markdown(summary, images: dict, robot_file: str | None) -> str:
               f"columns, seed 001 App. III); scaled condition number {_fmt(ident['condition_number_scaled'], '.3g')}.", ""]
     if ident["undetermined"]:
         lines.append(f"Not separable from the others (kept at their prior): {', '.join(map(md_text, ident['undetermined']))}.")
+    if ident.get("held_at_start"):
+        lines.append("Fitted with the nominal robot at the start, then held: not separable from robot parameters in the "
+                     f"full fit, which moved those instead: {', '.join(map(md_text, ident['held_at_start']))}.")
     if ident["poorly_determined"]:
         lines.append("Standard error above 10% of a typical size (1 cm / 0.01 rad): "
                      f"{', '.join(map(md_text, ident['poorly_determined']))}.")
