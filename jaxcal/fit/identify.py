@@ -124,12 +124,19 @@ class FitResult:
 
     def status(self, name: str) -> str:
         """"estimated", "fitted at start, held" (a device parameter the start fitted that the main fit could not
-        separate from robot parameters), "undetermined" (kept at its prior) or "fixed"."""
+        separate from robot parameters), "undetermined" (kept at its prior) or "fixed"; ", polished" when the
+        final all-parameter stage moved the held ones (`core.polish`)."""
         if name in self.estimated:
             return "estimated"
-        if name in self.held_at_start:
-            return "fitted at start, held"
-        return "undetermined" if name in self.undetermined else "fixed"
+        if name not in self.undetermined:
+            return "fixed"
+        status = "fitted at start, held" if name in self.held_at_start else "undetermined"
+        return status + ", polished" if self.polished else status
+
+    @property
+    def polished(self) -> bool:
+        """The final all-parameter stage was kept (`core.polish`): undetermined parameters moved a little."""
+        return bool(self.info.get("polish", {}).get("accepted"))
 
     @property
     def a_full(self):
@@ -181,11 +188,17 @@ class FitResult:
             f"compile {self.timings.get('compile_s', 0):.2f} s, run {self.timings.get('run_s', 0) * 1e3:.1f} ms",
         ]
         prior = [n for n in self.undetermined if n not in self.held_at_start]
+        then = "moved only by the final all-parameter stage" if self.polished else "kept"
         if prior:
-            lines.append(f"undetermined (kept at prior): {', '.join(prior)}")
+            lines.append(f"undetermined ({then} at prior): {', '.join(prior)}" if not self.polished else
+                         f"undetermined (prior, then {then}): {', '.join(prior)}")
         if self.held_at_start:
-            lines.append(f"fitted with the nominal robot, then held (not separable from robot parameters): "
-                         f"{', '.join(self.held_at_start)}")
+            lines.append(f"fitted with the nominal robot, then {'held' if not self.polished else then} "
+                         f"(not separable from robot parameters): {', '.join(self.held_at_start)}")
+        p = self.info.get("polish", {})
+        if p.get("accepted"):
+            lines.append(f"final all-parameter stage kept: cost {p['cost_before']:.4g} -> {p['cost_after']:.4g} "
+                         f"(F = {p['f_ratio']:.3g} for {p['added']} held parameters)")
         return "\n".join(lines)
 
 
@@ -372,7 +385,8 @@ def identify(
         info={"n_samples": len(data), "unclosed_samples": unclosed, "estimated_index": est_idx,
               "solver": solver if isinstance(solver, str) else type(solver).__name__,
               "sigma_position": sigma_position, "sigma_orientation": sigma_orientation,
-              "frames_converged": cal.frames_converged, "registered_start": cal.registered, **bias_info},
+              "frames_converged": cal.frames_converged, "registered_start": cal.registered, "polish": cal.polish,
+              **bias_info},
     )
 
 
