@@ -1,8 +1,15 @@
 import faulthandler
 import os
+import shutil
+import tempfile
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-os.environ.setdefault("JAXCAL_CACHE", "0")  # `jaxcal` commands run in-process keep nothing in ~/.cache
+# One persistent XLA cache per test run, made by the first pytest process (the xdist controller) and inherited by
+# its workers through the environment, so a function compiled by one worker is loaded by the other
+# (jaxcal/xla_cache.py makes sharing safe); removed when the run ends. Never ~/.cache. JAXCAL_CACHE=0 turns it off.
+if "JAXCAL_CACHE" not in os.environ:
+    os.environ["JAXCAL_CACHE"] = os.environ["JAXCAL_TEST_CACHE"] = tempfile.mkdtemp(prefix="jaxcal-test-xla-")
+    os.environ["JAXCAL_TEST_CACHE_OWNER"] = str(os.getpid())
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
@@ -36,6 +43,12 @@ def pytest_configure(config):
     """Keep a handle on the real stderr (output capture is suspended while configuring) for the dumps."""
     global _watchdog_fd
     _watchdog_fd = os.dup(2)
+
+
+def pytest_unconfigure(config):
+    """The process that made the run's XLA cache folder removes it."""
+    if os.environ.get("JAXCAL_TEST_CACHE_OWNER") == str(os.getpid()):
+        shutil.rmtree(os.environ["JAXCAL_TEST_CACHE"], ignore_errors=True)
 
 
 def watchdog_limit(item) -> float:
