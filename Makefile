@@ -37,8 +37,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check jaxcal tests benchmarks
 
 bench: $(STAMP)
-	$(BIN)/python benchmarks/fk.py
-	$(BIN)/python benchmarks/identify.py
+	$(BIN)/python benchmarks/table.py
 
 clean:
 	rm -rf $(VENV) demo-output .pytest_cache

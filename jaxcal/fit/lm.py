@@ -27,7 +27,11 @@ import jax
 import jax.numpy as jnp
 
 ACCEPT = 1e-3  # smallest gain ratio of an accepted step
-TAU = 1e-3  # initial damping relative to the largest diagonal entry of J^T J
+# Initial damping relative to the largest diagonal entry of J^T J. Madsen et al. (§3.2) advise 1e-6 when the start
+# is believed close to the solution, 1e-3 otherwise; the core starts from the nominal robot with the device frames
+# fitted. Stanford arm, 200 readings, 1 mm / 2 mrad errors: 1e-3 took 19 (position) / 15 (pose) iterations, 1e-6
+# 11 / 10, optimistix's LM 6; MRR-1 pose 19 -> 11; same RMS to 1e-6 mm.
+TAU = 1e-6
 LAM_MAX = 1e30  # damping past which no step can change anything: stop, unconverged
 
 
