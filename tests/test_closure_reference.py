@@ -103,7 +103,7 @@ def compare(rb, scale, n, seed):
             "off_branch": int(off_branch.sum()), "missed_branch": int(np.sum(branch_ok & (status != CLOSED)))}
 
 
-@pytest.mark.parametrize("scale", [1e-3, 1e-2])
+@pytest.mark.parametrize("scale", [pytest.param(1e-3, marks=pytest.mark.slow), 1e-2])  # 1e-3: same path, CI time
 def test_delta_closure_agrees_with_slow_reference(rb, scale):
     """~500 settings per error size: no closable sample flagged unclosed, no unreported mode switch."""
     c = compare(rb, scale, 520, seed=1)
