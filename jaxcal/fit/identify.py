@@ -188,13 +188,14 @@ class FitResult:
             f"compile {self.timings.get('compile_s', 0):.2f} s, run {self.timings.get('run_s', 0) * 1e3:.1f} ms",
         ]
         prior = [n for n in self.undetermined if n not in self.held_at_start]
-        then = "moved only by the final all-parameter stage" if self.polished else "kept"
+        moved = "then moved only by the final all-parameter stage"
         if prior:
-            lines.append(f"undetermined ({then} at prior): {', '.join(prior)}" if not self.polished else
-                         f"undetermined (prior, then {then}): {', '.join(prior)}")
+            how = f"prior, {moved}" if self.polished else "kept at prior"
+            lines.append(f"undetermined ({how}): {', '.join(prior)}")
         if self.held_at_start:
-            lines.append(f"fitted with the nominal robot, then {'held' if not self.polished else then} "
-                         f"(not separable from robot parameters): {', '.join(self.held_at_start)}")
+            how = moved if self.polished else "then held"
+            lines.append(f"fitted with the nominal robot, {how} (not separable from robot parameters): "
+                         f"{', '.join(self.held_at_start)}")
         p = self.info.get("polish", {})
         if p.get("accepted"):
             lines.append(f"final all-parameter stage kept: cost {p['cost_before']:.4g} -> {p['cost_after']:.4g} "
