@@ -47,6 +47,11 @@ class GapResiduals:
     def x_scale(self) -> np.ndarray:
         return self.model.x_scale()
 
+    @property
+    def jacobian_mode(self) -> str:
+        """Reverse mode sample by sample for open chains (`core.data_residual_and_jacobian`), forward through closures."""
+        return "reverse" if self.model.robot.closure is None else "forward"
+
     def residuals(self, x, q, y, cov, w):
         """w * (y - read(x, q, c)) (N, m) with every effect at its value in x (`jaxcal.gap.effects.residuals`)."""
         return residuals(self.model, x, q, y, cov, w)
