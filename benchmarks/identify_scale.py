@@ -28,9 +28,9 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 def one_size(n: int, kind: str) -> dict:
     """Simulate n samples, identify twice (compile, then run); times, accuracy and peak memory."""
     import numpy as np
+    from gap_scale import far_frame
 
     import jaxcal as jc
-    from gap_scale import far_frame
 
     rb = jc.robots.get("stanford")
     a_true = jc.perturb(rb, {"length": 1e-3, "angle": 2e-3, "gain": 1e-3}, seed=1)
