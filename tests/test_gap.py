@@ -384,3 +384,28 @@ def test_noise_figure_is_checked_against_repeated_poses():
     assert d.noise_source.startswith("repeated poses") and "disagree" in d.noise_source, d.noise_source
     with pytest.raises(ValueError, match="sigma_position"):
         jc.gap.diagnose(robot, data, sigma_position=-1.0)
+
+
+def test_core_jacobian_of_the_gap_model_is_jacfwd():
+    """The gap refits' residual model (every effect, per-sample covariates) through the core's reverse-mode data
+    Jacobian equals jax.jacfwd of it (relative 1e-12)."""
+    from jaxcal.fit import core
+    from jaxcal.gap.fit import GapResiduals
+
+    robot = jc.robots.get("mrr1")
+    model = gap_model(robot, jc.make_device("pose"))
+    residual_model = GapResiduals(model)
+    assert core.jacobian_mode(residual_model) == "reverse"
+    n = 7
+    q = jnp.asarray(jc.random_configurations(robot, n, seed=3))
+    C = jnp.asarray(covariate_matrix(model, _covariates(robot, n), n)[0])
+    x = np.asarray(model.nominal()).copy()
+    x[:robot.n_params] = np.asarray(jc.perturb(robot, 1e-2, seed=1))
+    x[model.n_geometry:] = 1e-2 * np.random.default_rng(0).standard_normal(len(model.effect_names))
+    x = jnp.asarray(x)
+    y = jax.vmap(lambda qi, ci: read(model, x, qi, ci))(q, C)
+    y = y + 1e-4 * jnp.cos(jnp.arange(y.size).reshape(y.shape))
+    w = jnp.ones((n, 6))
+    _, J = core.data_residual_and_jacobian(residual_model, x, q, y, C, w)
+    J_fwd = jax.jacfwd(lambda v: residual_model.residuals(v, q, y, C, w).reshape(-1))(x)
+    assert rel_err(J, J_fwd) < 1e-12, rel_err(J, J_fwd)
