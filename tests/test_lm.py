@@ -79,3 +79,18 @@ def test_history_is_the_cost_after_each_step():
     assert hist.shape == (steps + 1,) and n < steps
     np.testing.assert_allclose(hist[:n], by_hand, rtol=1e-8, atol=1e-14)  # eager vs compiled rounding
     assert np.all(np.isnan(hist[n:])) and hist[n - 1] < 1e-20
+
+
+def test_a_step_at_round_off_from_the_optimum_ends_the_run(monkeypatch):
+    """Restarted at its own optimum (noisy fit, nonzero residual), the solve stops after one step: a step below
+    the tolerances whose cost change is round-off is accepted (`lm.ROUND_OFF`). Judged by its gain ratio alone (a
+    ratio of round-off errors) the same step was rejected and the run went on while lam grew (3 steps here)."""
+    t = jnp.linspace(0.0, 2.0, 40)
+    noise = 1e-3 * jnp.asarray(np.random.default_rng(4).standard_normal(40))
+    fn = lambda z, t: exponentials(z, t) + noise  # noqa: E731
+    opt = lm.least_squares(fn, jnp.array([0.8, 0.7, 1.5, 3.5]), t, max_steps=200, rtol=1e-10, atol=1e-12)
+    again = lm.least_squares(fn, opt.z, t, max_steps=200, rtol=1e-10, atol=1e-12)
+    assert bool(again.converged) and int(again.steps) == 1
+    assert abs(float(again.cost) - float(opt.cost)) <= 1e-10 * float(opt.cost)
+    monkeypatch.setattr(lm, "ROUND_OFF", -np.inf)  # the gain-ratio test alone
+    assert int(lm.least_squares(fn, opt.z, t, max_steps=200, rtol=1e-10, atol=1e-12).steps) > 1

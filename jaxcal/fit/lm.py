@@ -16,7 +16,8 @@ residual r_i by at most atol + rtol |r_i| (such a step is accepted when the cost
 `ROUND_OFF`), or after max_steps iterations (accepted and rejected) unconverged.
 Why not optimistix's LM, which the core used before: the same iteration compiled ~1.6x faster here (XLA, 2-core
 CPU: 3.7 s vs 5.9 s for the Stanford arm, 200 positions; 5.0 vs 7.0 s for poses), and compile time is most of
-a first calibration and of the test suite. The residual and its Jacobian come from one forward-mode pass.
+a first calibration and of the test suite. The residual and its Jacobian come from one forward-mode pass, or from
+the caller's `jac` (the core passes its reverse-mode data Jacobian: `jaxcal.fit.core.data_residual_and_jacobian`).
 """
 
 from __future__ import annotations
