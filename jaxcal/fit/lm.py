@@ -83,20 +83,32 @@ class LMState(NamedTuple):
     converged: jnp.ndarray
 
 
+def initial_damping(J):
+    """lam = TAU max diag(J^T J) (TAU when J is 0)."""
+    lam0 = TAU * jnp.max(jnp.sum(J**2, axis=0))
+    return jnp.where(lam0 > 0, lam0, TAU)
+
+
 def init(fn: Callable, z0, args, jac: Callable | None = None) -> LMState:
-    """The state at z0: lam = TAU max diag(J^T J) (TAU when J is 0). jac(z, args) -> (r, J): how to evaluate the
-    residual and its Jacobian together (default `residual_and_jacobian` of fn)."""
+    """The state at z0 (damping `initial_damping`). jac(z, args) -> (r, J): how to evaluate the residual and its
+    Jacobian together (default `residual_and_jacobian` of fn)."""
     r0, J0 = (jac or functools.partial(residual_and_jacobian, fn))(z0, args)
-    lam0 = TAU * jnp.max(jnp.sum(J0**2, axis=0))
-    return LMState(z0, r0, J0, jnp.where(lam0 > 0, lam0, TAU), jnp.asarray(2.0, z0.dtype), jnp.asarray(0),
-                   jnp.asarray(False))
+    return LMState(z0, r0, J0, initial_damping(J0), jnp.asarray(2.0, z0.dtype), jnp.asarray(0), jnp.asarray(False))
 
 
 def step(fn: Callable, s: LMState, args, rtol: float, atol: float, jac: Callable | None = None) -> LMState:
     """One iteration: the damped step, kept or not by its gain ratio, the damping updated (module docstring)."""
-    delta = damped_step(s.J, s.r, s.lam)
+    return advance(jac or functools.partial(residual_and_jacobian, fn), s, args, rtol, atol, jnp.asarray(False))
+
+
+def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first) -> LMState:
+    """`step` with the residual-and-Jacobian function rj; when `first` is true the step is 0 and the point is taken
+    as it is (the state then holds r and J at z and lam = `initial_damping`, as `init` gives, and counts no step).
+    `least_squares` starts its loop with such a step, so rj appears once in the compiled loop, not also before it:
+    the Jacobian is most of what XLA compiles."""
+    delta = jnp.where(first, 0.0, damped_step(s.J, s.r, s.lam))
     z_new = s.z + delta
-    r_new, J_new = (jac or functools.partial(residual_and_jacobian, fn))(z_new, args)
+    r_new, J_new = rj(z_new, args)
     cost, cost_new = s.r @ s.r, r_new @ r_new
     predicted = cost - jnp.sum((s.r + s.J @ delta) ** 2)
     actual = cost - cost_new
@@ -105,26 +117,30 @@ def step(fn: Callable, s: LMState, args, rtol: float, atol: float, jac: Callable
     # a step below the tolerances that leaves the cost unchanged to round-off ends the run: there the gain ratio
     # is a ratio of round-off errors, and rejecting on it only grows lam until some step happens to pass
     at_round_off = small & (actual >= -ROUND_OFF * cost)
-    accepted = jnp.isfinite(cost_new) & (((actual >= 0) & (actual >= ACCEPT * predicted)) | at_round_off)
+    accepted = first | (jnp.isfinite(cost_new) & (((actual >= 0) & (actual >= ACCEPT * predicted)) | at_round_off))
     rho = actual / jnp.where(predicted > 0, predicted, 1.0)
     keep = lambda new, old: jnp.where(accepted, new, old)  # noqa: E731
-    return LMState(keep(z_new, s.z), keep(r_new, s.r), keep(J_new, s.J),
-                   jnp.where(accepted, s.lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), s.lam * s.nu),
-                   jnp.where(accepted, 2.0, 2.0 * s.nu), s.steps + 1, accepted & small)
+    lam = jnp.where(accepted, s.lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), s.lam * s.nu)
+    return LMState(keep(z_new, s.z), keep(r_new, s.r), keep(J_new, s.J), jnp.where(first, initial_damping(J_new), lam),
+                   jnp.where(accepted, 2.0, 2.0 * s.nu), s.steps + jnp.where(first, 0, 1), ~first & accepted & small)
 
 
 def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: float,
                   jac: Callable | None = None) -> LMResult:
-    """Minimise |fn(z, args)|^2 from z0 by Levenberg-Marquardt (see the module docstring); jac as in `init`."""
-    s0 = init(fn, z0, args, jac)
+    """Minimise |fn(z, args)|^2 from z0 by Levenberg-Marquardt (see the module docstring); jac as in `init`.
+    The loop's first turn evaluates r and J at z0 (`advance` with first=True)."""
+    rj = jac or functools.partial(residual_and_jacobian, fn)
+    r_shape, J_shape = jax.eval_shape(rj, z0, args)
+    blank = LMState(z0, jnp.zeros(r_shape.shape, r_shape.dtype), jnp.zeros(J_shape.shape, J_shape.dtype),
+                    jnp.asarray(1.0, z0.dtype), jnp.asarray(2.0, z0.dtype), jnp.asarray(0), jnp.asarray(False))
 
     def body(carry):
-        s, hist = carry
-        s = step(fn, s, args, rtol, atol, jac)
-        return s, hist.at[s.steps].set(s.r @ s.r)
+        s, hist, first = carry
+        s = advance(rj, s, args, rtol, atol, first)
+        return s, hist.at[s.steps].set(s.r @ s.r), jnp.asarray(False)
 
-    s, hist = jax.lax.while_loop(lambda c: ~c[0].converged & (c[0].steps < max_steps) & (c[0].lam < LAM_MAX), body,
-                                 (s0, jnp.full(max_steps + 1, jnp.nan, z0.dtype).at[0].set(s0.r @ s0.r)))
+    s, hist, _ = jax.lax.while_loop(lambda c: c[2] | (~c[0].converged & (c[0].steps < max_steps) & (c[0].lam < LAM_MAX)),
+                                    body, (blank, jnp.full(max_steps + 1, jnp.nan, z0.dtype), jnp.asarray(True)))
     return LMResult(s.z, s.converged, s.steps, s.r @ s.r, hist)
 
 
@@ -140,4 +156,4 @@ class LevenbergMarquardt:
 
 
 __all__ = ["LMResult", "LMState", "LevenbergMarquardt", "damped_step",
-           "init", "least_squares", "residual_and_jacobian", "step"]
+           "init", "initial_damping", "least_squares", "residual_and_jacobian", "step", "advance"]
