@@ -110,16 +110,19 @@ class FitResult:
 
     @property
     def std_errors(self) -> dict:
-        """Standard error of each estimated parameter (sqrt of the covariance diagonal)."""
+        """Standard error of each estimated parameter (sqrt of the covariance diagonal), and of each undetermined
+        one the final all-parameter stage moved (`_polished_covariance`)."""
         if self.covariance is None:
             return {}
-        return dict(zip(self.estimated, np.sqrt(np.maximum(np.diag(self.covariance), 0.0))))
+        se = dict(zip(self.estimated, np.sqrt(np.maximum(np.diag(self.covariance), 0.0))))
+        return se | self.info.get("polished_std_errors", {})  # the undetermined ones the final stage moved
 
     def poorly_determined(self, relative: float = 0.1) -> list[str]:
         """Estimated parameters whose standard error exceeds `relative` x their typical size
         (0.01 m/rad for geometry, 1 for gains) - plus every undetermined one."""
         units = dict(zip(self.names, tuple(self.robot.units) + tuple(self.device.units)))
-        out = [n for n, se in self.std_errors.items() if se > relative * (1.0 if units[n] in ("gain", "scale") else 0.01)]
+        out = [n for n, se in self.std_errors.items()
+               if n not in self.undetermined and se > relative * (1.0 if units[n] in ("gain", "scale") else 0.01)]
         return out + list(self.undetermined)
 
     def status(self, name: str) -> str:
@@ -196,6 +199,10 @@ class FitResult:
             how = moved if self.polished else "then held"
             lines.append(f"fitted with the nominal robot, {how} (not separable from robot parameters): "
                          f"{', '.join(self.held_at_start)}")
+        weak = [n for n in self.poorly_determined() if n not in self.undetermined]
+        if weak:
+            lines.append(f"poorly determined by these data (standard error above 1 mm, 1 mrad or 0.1 of a gain; "
+                         f"their values are not trustworthy): {', '.join(weak)}")
         p = self.info.get("polish", {})
         if p.get("accepted"):
             lines.append(f"final all-parameter stage kept: cost {p['cost_before']:.4g} -> {p['cost_after']:.4g} "
@@ -369,6 +376,9 @@ def identify(
     dof = max(int(np.sum(problem.w != 0)) - len(est_idx), 1)
     sigma_hat = float(np.sqrt(r_final @ r_final / dof))
     covariance = sigma_hat**2 * np.linalg.pinv(Je.T @ Je) if len(est_idx) else None
+    polished_se = {}
+    if cal.polish.get("accepted"):
+        covariance, polished_se = _polished_covariance(cal, sigma_hat, names)
     pick = (lambda p, o: p if p is not None else o)
     a_full = jnp.asarray(cal.x)
     to_names = lambda idx: tuple(names[i] for i in idx)  # noqa: E731
@@ -387,8 +397,27 @@ def identify(
               "solver": solver if isinstance(solver, str) else type(solver).__name__,
               "sigma_position": sigma_position, "sigma_orientation": sigma_orientation,
               "frames_converged": cal.frames_converged, "registered_start": cal.registered, "polish": cal.polish,
+              "polished_std_errors": polished_se,
               **bias_info},
     )
+
+
+def _polished_covariance(cal: core.Calibration, sigma_hat: float, names) -> tuple[np.ndarray, dict]:
+    """Covariance after the final all-parameter stage (`core.polish`): the stage solved every parameter with an
+    effect under the bias mu ||(x - x_ref) / s||^2, mu = POLISH_BIAS, so its information is
+    J^T J + mu diag(1 / s^2) over those columns (seed 004 eq 3.12 read as a prior) and its covariance
+    sigma^2 (J^T J + mu diag(1 / s^2))^-1. Returns (the block of the estimated parameters, {name: standard
+    error} of the parameters the stage added). Directions the data cannot determine keep the prior's spread
+    (s / sqrt(mu) = 0.1 m or rad) instead of the tiny error the base-set block gives when the held parameters
+    are not at their true values."""
+    added = np.setdiff1d(cal.undetermined, cal.no_effect)
+    cols = np.sort(np.concatenate([cal.estimated, added]))
+    Jc = cal.J[:, cols]
+    information = Jc.T @ Jc + core.POLISH_BIAS * np.diag(1.0 / cal.problem.x_scale[cols] ** 2)
+    C = sigma_hat**2 * np.linalg.inv(information)
+    pos = np.searchsorted(cols, cal.estimated)
+    se = np.sqrt(np.maximum(np.diag(C), 0.0))
+    return C[np.ix_(pos, pos)], {names[c]: float(se[k]) for k, c in enumerate(cols) if c in set(added.tolist())}
 
 
 def _weak_directions(J, names, rel: float = 1e-8):
