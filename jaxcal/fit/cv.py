@@ -5,6 +5,11 @@ joint readings, stay in one fold so a held-out pose is never seen in training), 
 k - 1 folds each time and scores the held-out fold, for the calibrated model and for the fair "before"
 (nominal robot, device frame and marker fitted on the same training samples). Each training set is a
 sample-weight mask over the whole dataset, so every fold shares one compiled solver.
+
+`nested_cross_validate(robot, data, candidates)` makes every modelling choice (a named set of `identify`
+options) per outer fold by an inner k-fold cross-validation on that fold's training samples only, then scores
+the chosen candidate on the outer held-out fold: an honest estimate of what choosing by cross-validation
+gains, to set against a fixed default (docs/defaults.md).
 """
 
 from __future__ import annotations
@@ -47,6 +52,7 @@ class CVResult:
     per_fold: tuple[dict, ...]
     healthy_folds: int  # folds whose fit has no health warning
     timings: dict
+    heldout_errors: tuple = ()  # per-sample held-out error after calibration (m or rad), in sample order
 
     def report(self) -> str:
         o = ""
@@ -64,6 +70,7 @@ def cross_validate(robot, data: Dataset, folds: int = 5, seed: int = 0, **identi
     t0 = time.perf_counter()
     fold = fold_of_samples(data.q, folds, seed)
     held_b, held_a, ori_b, ori_a, rows, healthy = [], [], [], [], [], 0
+    per_sample = np.zeros(len(data))
     for b in range(folds):
         weights = (fold != b).astype(float)
         fit = identify(robot, data, sample_weights=weights, **identify_kw)
@@ -72,6 +79,7 @@ def cross_validate(robot, data: Dataset, folds: int = 5, seed: int = 0, **identi
         (pb, ob), (pa, oa) = frames.errors(test), fit.errors(test)
         held_b.append(pb if pb is not None else ob)
         held_a.append(pa if pa is not None else oa)
+        per_sample[fold == b] = held_a[-1]
         if pb is not None and ob is not None:
             ori_b.append(ob)
             ori_a.append(oa)
@@ -80,7 +88,77 @@ def cross_validate(robot, data: Dataset, folds: int = 5, seed: int = 0, **identi
                      "heldout_after": _rms(held_a[-1]), "converged": bool(fit.converged), "warnings": list(fit.health.warnings)})
     cat = lambda parts: np.concatenate(parts) if parts else None  # noqa: E731
     return CVResult(folds, _rms(cat(held_b)), _rms(cat(held_a)), _rms(cat(ori_b)), _rms(cat(ori_a)), tuple(rows), healthy,
-                    {"total_s": time.perf_counter() - t0})
+                    {"total_s": time.perf_counter() - t0}, tuple(per_sample.tolist()))
 
 
-__all__ = ["CVResult", "cross_validate", "fold_of_samples"]
+def _heldout_error(fit, data: Dataset, test_mask) -> np.ndarray:
+    """Per-sample error of a fit (position m, or the device's own error) on the samples of test_mask."""
+    pe, oe = fit.errors(data.subset(np.flatnonzero(test_mask)))
+    return pe if pe is not None else oe
+
+
+def _fit(robot, data: Dataset, train_mask, options: dict, common: dict):
+    return identify(robot, data, sample_weights=train_mask.astype(float), **(common | options))
+
+
+def inner_scores(robot, data: Dataset, candidates: dict, train_mask, inner_folds: int = 4, seed: int = 1,
+                 **common) -> dict:
+    """Pooled inner cross-validated RMS (mm or mrad) of every candidate, using the samples of train_mask only."""
+    train = np.flatnonzero(train_mask)
+    inner = fold_of_samples(data.q[train], inner_folds, seed)
+    scores = {}
+    for label, options in candidates.items():
+        errors = []
+        for b in range(inner_folds):
+            fit_mask = np.zeros(len(data), bool)
+            fit_mask[train[inner != b]] = True
+            test_mask = np.zeros(len(data), bool)
+            test_mask[train[inner == b]] = True
+            errors.append(_heldout_error(_fit(robot, data, fit_mask, options, common), data, test_mask))
+        scores[label] = _rms(np.concatenate(errors))
+    return scores
+
+
+@dataclasses.dataclass(frozen=True)
+class NestedCVResult:
+    """Held-out RMS of the candidate chosen per outer fold by inner cross-validation (pooled over every
+    held-out sample), the choice and inner scores per fold, and the per-sample held-out errors."""
+
+    folds: int
+    heldout: float
+    chosen: tuple[str, ...]
+    inner: tuple[dict, ...]
+    converged: tuple[bool, ...]  # the chosen candidate's outer fit, per fold
+    heldout_errors: tuple
+    timings: dict
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def nested_cross_validate(robot, data: Dataset, candidates: dict, folds: int = 5, inner_folds: int = 4, seed: int = 0,
+                          **common) -> NestedCVResult:
+    """Nested k-fold cross-validation: per outer fold (the folds of `cross_validate` with this seed), the
+    candidate (label -> `identify` options, fixed before any fit) with the smallest inner cross-validated RMS on
+    the training samples (`inner_scores`) is fitted on them and scored on the held-out fold, which no choice
+    ever sees. `common`: options every candidate shares (e.g. sigma_position)."""
+    if not candidates:
+        raise ValueError("nested_cross_validate needs at least one candidate")
+    t0 = time.perf_counter()
+    fold = fold_of_samples(data.q, folds, seed)
+    per_sample = np.zeros(len(data))
+    chosen, inner, converged = [], [], []
+    for b in range(folds):
+        train_mask = fold != b
+        scores = inner_scores(robot, data, candidates, train_mask, inner_folds, seed + 1, **common)
+        best = min(scores, key=scores.get)
+        fit = _fit(robot, data, train_mask, candidates[best], common)
+        per_sample[fold == b] = _heldout_error(fit, data, fold == b)
+        chosen.append(best)
+        inner.append(scores)
+        converged.append(bool(fit.converged))
+    return NestedCVResult(folds, _rms(per_sample), tuple(chosen), tuple(inner), tuple(converged),
+                          tuple(per_sample.tolist()), {"total_s": time.perf_counter() - t0})
+
+
+__all__ = ["CVResult", "NestedCVResult", "cross_validate", "fold_of_samples", "inner_scores", "nested_cross_validate"]
