@@ -43,8 +43,9 @@ def _progress(enabled: bool = True):
 
 @contextlib.contextmanager
 def _stage(prog, text):
+    """A spinner for one stage; yields a function that shows what the stage is doing now beside its text."""
     task = prog.add_task(text, total=1)
-    yield
+    yield lambda now: prog.update(task, description=f"{text}: {now}")
     prog.update(task, completed=1)
 
 
@@ -214,10 +215,10 @@ def _calibrate(args) -> int:
             check_enough_samples(data, job["holdout"])
             for w in data_warnings:
                 _warn(w)
-            with _stage(prog, f"identifying {robot.name} on {len(data)} samples (compiles the solver on first use)"):
+            with _stage(prog, f"identifying {robot.name} on {len(data)} samples (compiles the solver on first use)") as now:
                 res = run_job(robot, data, holdout=job["holdout"], seed=job["seed"], solver=job["solver"], free=free,
                               known=tuple(job.get("known") or ()), sigma_position=job["sigma_position"],
-                              sigma_orientation=job["sigma_orientation"], max_steps=job["max_steps"],
+                              sigma_orientation=job["sigma_orientation"], max_steps=job["max_steps"], progress=now,
                               **tolerances(job))
             add_data_warnings(res.summary, data_warnings)
             with _stage(prog, f"writing the report to {out}"), cleanup_on_signals():

@@ -142,3 +142,16 @@ def test_csv_reader_and_its_errors(tmp_path):
         jc.Dataset.from_csv(str(path), joints=("j1", "j2", "j3"))
     with pytest.raises(jc.DataError, match="missing column"):
         jc.Dataset.from_csv(str(path), joints=("q1", "j2", "j3"))
+
+
+def test_progress_reports_every_stage_in_order():
+    """identify(progress=f) calls f as each stage begins: the start, the fit (then the bias stages when the
+    estimate is noise-dominated), the final all-parameter stage; the CLI shows these beside its spinner."""
+    rb = jc.robots.get("stanford")
+    data = jc.simulate(rb, jc.perturb(rb, 1e-3, seed=1), jc.random_configurations(rb, 60, seed=2), "position",
+                       noise=1e-5, seed=3)
+    stages = []
+    fit = jc.identify(rb, data, sigma_position=1e-5, progress=stages.append)
+    assert fit.converged
+    assert stages[0].startswith("start") and stages[1] == f"fit of {len(fit.estimated)} parameters"
+    assert stages[-1].startswith("final all-parameter stage")

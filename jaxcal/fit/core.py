@@ -728,15 +728,18 @@ def polish(problem: Problem, x, J, estimated, undetermined, no_effect, settings:
 
 def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool = True, bias=None, multistart: int = 0,
               seed: int = 0, base_tol: float | None = None, started: Calibration | None = None,
-              final_polish: bool = True) -> Calibration:
+              final_polish: bool = True, progress=None) -> Calibration:
     """The calibration path every client uses: start, base set at the start, bias stages (and multi-start), then
     the all-parameter polish (`polish`, with base and final_polish).
-    started: an earlier calibration of the same problem and settings, whose start (and its Jacobian) is reused."""
+    started: an earlier calibration of the same problem and settings, whose start (and its Jacobian) is reused.
+    progress: called with a short text as each stage begins (a progress display: `jaxcal calibrate`)."""
+    say = progress or (lambda text: None)
     t0 = time.perf_counter()
     if started is not None and started.problem is problem:
         x_frames, registered, J0, frames_ok, compile_s, frames_fitted = (
             started.x_frames, started.registered, started.J0, started.frames_converged, 0.0, started.frames_fitted)
     else:
+        say("start: device frame registered, then fitted with the nominal robot")
         x_frames, frames_sol, registered = start(problem, settings)
         J0 = problem.jacobian(x_frames)
         frames_ok = True if frames_sol is None else frames_sol.converged
@@ -745,6 +748,8 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
     est, undetermined, no_effect, regrouped = choose_estimated(problem, J0, base, base_tol)
     x, iterations, converged, histories = x_frames, 0, True, []
     for mu in bias_schedule(bias):
+        say(f"fit of {len(est)} parameters" + (f", bias mu = {mu:g}" if mu else "")
+            + (f", {multistart + 1} starts" if multistart else ""))
         if multistart:
             args = problem.args(est, mu, x_frames)
             rng = np.random.default_rng(seed)
@@ -764,6 +769,7 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
     J = problem.jacobian(x)
     polish_record = {"tried": False}
     if base and final_polish:
+        say("final all-parameter stage (tried when it would lower the cost beyond noise)")
         polished, polish_record = polish(problem, x, J, est, undetermined, no_effect, settings)
         if polished is not None:  # a converged optimum from where the stages stopped, converged or not
             x, compile_s, converged = polished.x, compile_s + polished.compile_s, True

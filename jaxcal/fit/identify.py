@@ -258,6 +258,7 @@ def identify(
     sample_weights=None,
     base_tol: float | None = None,
     outliers: str = "flag",
+    progress=None,
     _unclosed_excluded: tuple = (),
 ) -> FitResult:
     """Identify robot and device parameters from a dataset, through the calibration core (`jaxcal.fit.core`).
@@ -284,6 +285,7 @@ def identify(
     seed 001's eq 34 uses n eps, which keeps columns dependent up to round-off).
     outliers: "flag" (default: samples failing the robust test are listed in `health` and warned about) or
     "exclude" (they are also left out, weight 0, and the fit is repeated once without them).
+    progress: called with a short text as each stage begins (`core.calibrate`; the CLI's progress display).
 
     Closed mechanisms: samples that do not close at the start are left out; samples that do not close at the
     solution are left out too and the fit is repeated once without them (`info["unclosed_at_solution"]`); both
@@ -320,7 +322,7 @@ def identify(
                                 sample_weights=sw[keep] if sample_weights is not None else None)
     settings = core.Settings(solver, max_steps, rtol, atol)
     cal = core.calibrate(problem, settings, base=base, bias=None if isinstance(bias, str) else bias, multistart=multistart,
-                         seed=seed, base_tol=base_tol)
+                         seed=seed, base_tol=base_tol, progress=progress)
     bias_info = {}
     if bias is None or (isinstance(bias, str) and bias == "heldout"):
         weakest = weakest_standard_error(cal)
@@ -332,7 +334,7 @@ def identify(
                 bias_info["bias_heldout"] = scores.tolist()
             bias_info.update(bias_schedule=schedule)
             cal = core.calibrate(problem, settings, base=base, bias=schedule, multistart=multistart, seed=seed,
-                                 base_tol=base_tol, started=cal)
+                                 base_tol=base_tol, started=cal, progress=progress)
         bias_info["weakest_standard_error"] = weakest
     health = assess(cal, unclosed_start=unclosed + tuple(_unclosed_excluded), sample_index=keep, settings=settings)
     if robot.closure is not None and not _unclosed_excluded:
@@ -344,7 +346,7 @@ def identify(
             kw = dict(free=free, known=known, a0=a0, device_params=device_params, solver=solver, base=base, bias=bias,
                       bounds=bounds, multistart=multistart, seed=seed, sigma_position=sigma_position,
                       sigma_orientation=sigma_orientation, max_steps=max_steps, rtol=rtol, atol=atol, history=history,
-                      base_tol=base_tol, outliers=outliers)
+                      base_tol=base_tol, outliers=outliers, progress=progress)
             refit = identify(robot, full_data, sample_weights=sw, _unclosed_excluded=at_solution, **kw)
             refit.info["unclosed_at_solution"] = at_solution
             return refit
@@ -354,7 +356,7 @@ def identify(
         kw = dict(free=free, known=known, a0=a0, device_params=device_params, solver=solver, base=base, bias=bias,
                   bounds=bounds, multistart=multistart, seed=seed, sigma_position=sigma_position,
                   sigma_orientation=sigma_orientation, max_steps=max_steps, rtol=rtol, atol=atol, history=history,
-                  base_tol=base_tol)
+                  base_tol=base_tol, progress=progress)
         refit = identify(robot, full_data, sample_weights=sw, outliers="flag", _unclosed_excluded=_unclosed_excluded, **kw)
         refit.info["excluded_outliers"] = health.outliers
         return refit
