@@ -76,11 +76,12 @@ CASES = {  # effect -> (robot, device, injected direction {parameter: value}); s
     "encoder_gain": ("mrr1", "position", {"gap.encoder_gain.j2": 1.0}),
     "coupling": ("mrr1", "position", {"gap.coupling.j2": 1.0}),
     "link_bending": ("stanford", "position", {"gap.link_bending.j2": 1.0}),
-    "thermal": ("mrr1", "position", {"gap.thermal": 1.0}),
+    "thermal": ("mrr1", "position", {"gap.thermal": 1.0, "gap.thermal.x": -0.4, "gap.thermal.y": 0.3}),  # centre off the base
     "drift": ("mrr1", "position", {"gap.drift.vx": 1.0, "gap.drift.wz": 0.3, "gap.drift.wy": -0.2}),
     "device_scale": ("mrr1", "position", {"gap.device_scale.x": 1.0, "gap.device_scale.z": -0.5}),
     "device_bias": ("mrr1", "position", {"gap.device_bias.range": 1.0, "gap.device_bias.x": 0.5}),
     "compliance": ("stanford", "position", {"gap.compliance.j2": 1.0}),
+    "payload": ("stanford", "position", {"gap.payload.j2": 1.0}),
 }
 FAST = ("gear", "device_bias")  # the others are @slow (about 2-10 s each once compiled)
 

@@ -18,9 +18,10 @@ actuated-joint effects (added to the actuator reading before the closure, seed 0
                nacelle centre: the platform and its payload), gravity -z of the robot base frame;
                the rods and arms are taken as massless. tau is evaluated on the nominal geometry
                (the first-order load; it does not depend on the parameters being fitted).
-thermal        p' = p0 + (1 + kappa * tau) (p - p0): every length of the mechanism scaled by the same
+thermal        p' = p0 + (1 + kappa * tau) (p - p0) + tau v: every length of the mechanism scaled by the same
                factor is a similarity of the closed mechanism (angles and hence the closure are
-               unchanged), so the tool point scales about the base origin p0 exactly
+               unchanged), so the tool point scales about the base origin p0 exactly; v moves the
+               centre of the expansion (`jaxcal.gap.library.thermal`)
 device effects (device_scale, device_bias, drift) act on the reading as for open chains.
 
 The layout is `jaxcal.gap.model.gap_model`'s with the effects marked `closed_loop`; the hooks are the

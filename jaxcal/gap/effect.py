@@ -9,6 +9,8 @@ hook with theta and the sample's covariates c = (time, thermal driver, direction
   "joint"          joint input offsets, linear in theta: dq_j = sum_t theta_jt phi_jt(q, c)
                    (`input_basis` gives phi; open chains and closed loops)
   "gravity"        rotation vectors dphi_j (n, 3) about each joint axis from the gravity moments M_j (open chains)
+  "payload"        the same hook (`tool_rotation`) with the moments P_j = (p - o_j) x g_hat of a unit mass at the
+                   tool point p instead (open chains)
   "actuator_load"  actuator input offsets dq_j from the gravity load tau_j on each actuator (closed loops)
   "tool"           a transform of the tool pose (R, p) in the robot base frame
   "reading"        an additive change dv of a position reading v, and optionally a rotation vector turning
@@ -26,7 +28,7 @@ from typing import Any, ClassVar, NamedTuple
 import jax.numpy as jnp
 
 EFFECT_SCALE = 1e-3  # typical size of an effect parameter (rad, m, or relative)
-PLACES = frozenset({"joint", "gravity", "actuator_load", "tool", "reading"})
+PLACES = frozenset({"joint", "gravity", "payload", "actuator_load", "tool", "reading"})
 COVARIATES = ("direction", "thermal", "time")
 
 
@@ -73,7 +75,7 @@ class Effect(abc.ABC):
 
     def tool_rotation(self, theta, loads, axes):
         """dphi (n, 3), rad: rotation about joint axis j of everything distal, from the gravity moments
-        loads = M (n, 3; kg m) and the unit axes z (n, 3) ("gravity")."""
+        loads = M (n, 3; kg m) and the unit axes z (n, 3) ("gravity"; "payload": the moments of 1 kg at the tool)."""
         raise NotImplementedError(self.name)
 
     def actuator_offset(self, theta, load):

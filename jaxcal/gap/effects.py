@@ -18,9 +18,11 @@ gravity effects (first-order rotations about the joint axis (o_j, z_j) of everyt
   default mass model: 1 kg at each body origin (c_k = p_k)
   compliance   dphi_j = c_j (z_j . M_j) z_j                                 (revolute joints)
   link_bending dphi_j = b_j (M_j - (z_j . M_j) z_j)      (bending perpendicular to the joint axis)
+  payload      dphi_j = c_j (z_j . P_j) z_j, P_j = (p - o_j) x g_hat: a point mass at the tool point p
   tip: p' = p + sum_j dphi_j x (p - o_j),  R' = exp(sum_j dphi_j) R
-thermal        p' = p0 + (1 + kappa * tau) (p' - p0), p0 the robot base origin, tau the thermal
-               driver (standardised temperature, else standardised time)
+thermal        p' = p0 + (1 + kappa * tau) (p' - p0) + tau v: expansion about an unknown centre c, with
+               v = kappa (p0 - c), p0 the robot base origin, tau the thermal driver (standardised
+               temperature, else standardised time)
 device effects on the reading's position y (device frame; their changes add, each from the unchanged y):
   device_scale y' = (1 + s) * y (per axis)
   device_bias  y' = y + b + rho * y / |y|   (constant offset b: absorbed by the device frame;
@@ -92,11 +94,16 @@ def open_tool_pose(model: GapModel, x, q, cov):
     qm = q + joint_offsets(model, e, q, cov)
     F = frames_single(robot, a, joint_variables(robot, a, qm))
     R, p = F.R[robot.tip], F.p[robot.tip]
-    gravity = model.acting_on("gravity")
-    if gravity:
+    gravity, payload = model.acting_on("gravity"), model.acting_on("payload")
+    if gravity or payload:
         o, z = joint_axes(model, F)
-        M = gravity_loads(model, F, o)
-        dphi = sum(fx.tool_rotation(params_of(model, e, fx), M, z) for fx in gravity)
+        dphi = jnp.zeros_like(o)
+        if gravity:
+            M = gravity_loads(model, F, o)
+            dphi = dphi + sum(fx.tool_rotation(params_of(model, e, fx), M, z) for fx in gravity)
+        if payload:
+            P = jnp.cross(p - o, jnp.asarray(G_HAT))
+            dphi = dphi + sum(fx.tool_rotation(params_of(model, e, fx), P, z) for fx in payload)
         p = p + jnp.sum(jnp.cross(dphi, p - o), axis=0)
         R = exp_so3(jnp.sum(dphi, axis=0)) @ R
     return tool_transforms(model, e, R, p, cov)

@@ -12,6 +12,7 @@ from jaxcal.gap.library import (
     encoder_gain,
     gear,
     link_bending,
+    payload,
     thermal,
 )
 
@@ -26,6 +27,7 @@ BUILT_IN = (
     device_scale.DeviceScale(),
     device_bias.DeviceBias(),
     link_bending.LinkBending(),
+    payload.Payload(),
 )
 for _effect in BUILT_IN:
     register(_effect)
