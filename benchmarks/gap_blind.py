@@ -34,6 +34,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 import jaxcal as jc  # noqa: E402
+from jaxcal import compiled  # noqa: E402
 from jaxcal.gap.diagnose import shrink_fraction  # noqa: E402
 from jaxcal.gap.effects import GLOBAL_EFFECTS, JOINT_EFFECTS, NEEDS, gap_model  # noqa: E402
 from jaxcal.gap.fit import covariate_matrix, jacobians, loads_and_tips, padded_size  # noqa: E402
@@ -41,6 +42,7 @@ from jaxcal.gap.simulate import add_noise, effect_vector, readings  # noqa: E402
 
 ROBOTS = ("mrr1", "stanford")
 DECOYS = ("harmonic3", "bump", "quadratic")
+MAX_MAPPED_REGIONS = 30_000  # memory mappings past which compiled code is dropped (tests/conftest.py does the same)
 VISIBLE_MIN = 0.2  # closed loops: share of an effect's displacement left after the linearised geometry fit
 
 
@@ -386,6 +388,8 @@ def diagnose_all(folder, limit_s=None, shard=None, out_path=None, max_steps=None
                       "parameters": d.parameters, "diverged": d.diverged}
         _write_json(out_path, preds)
         print(f"{key} {d.robot_name:<9} {d.verdict:<13} {','.join(d.joints):<8} {wall:6.1f} s", flush=True)
+        if compiled.mapped_regions() > MAX_MAPPED_REGIONS:  # before the process meets vm.max_map_count (jaxcal.compiled)
+            compiled.clear()
     return preds
 
 

@@ -410,3 +410,22 @@ def test_core_jacobian_of_the_gap_model_is_jacfwd():
     _, J = core.data_residual_and_jacobian(residual_model, x, q, y, C, w)
     J_fwd = jax.jacfwd(lambda v: residual_model.residuals(v, q, y, C, w).reshape(-1))(x)
     assert rel_err(J, J_fwd) < 1e-12, rel_err(J, J_fwd)
+
+
+def test_payload_box_uses_the_moment_of_a_mass_at_the_tool():
+    """The refit's sane box of a gravity effect is BOX over its peak moment: the robot's own masses for compliance,
+    1 kg at the tool for payload (with the compliance moment the box rejected right payload fits of ~0.03 rad in
+    the wide blind run, docs/gap.md)."""
+    from jaxcal.gap import fit as gf
+    from jaxcal.gap.diagnose import BOX, box_limits
+
+    robot = jc.robots.get("stanford")
+    model = gap_model(robot, jc.make_device("position"))
+    q = jnp.asarray(jc.random_configurations(robot, 40, seed=0))
+    gravity, payload = (np.asarray(v) for v in gf.moment_norms(jnp.asarray(model.nominal()), q, model=model))
+    lim = box_limits(model, gravity, payload)
+    j = robot.joint_names.index("j2")
+    assert payload.shape == gravity.shape == (40, robot.n_inputs)
+    assert lim[model.names.index("gap.payload.j2")] == pytest.approx(BOX / payload[:, j].max())
+    assert lim[model.names.index("gap.compliance.j2")] == pytest.approx(BOX / gravity[:, j].max())
+    assert gravity[:, j].max() > 2 * payload[:, j].max()  # 1 kg per body outweighs 1 kg at the tool

@@ -617,13 +617,16 @@ def refit_problem(prep: Prepared, base: Baseline) -> core.Problem:
                              a_ref=base.xs[prep.folds], model=gf.GapResiduals(model), cov=prep.cov)
 
 
-def box_limits(model: GapModel, moment_norm) -> np.ndarray:
+def box_limits(model: GapModel, moment_norm, payload_norm) -> np.ndarray:
     """Largest sane change of each parameter from the baseline: BOX (m, rad, relative) for the geometry, and each
-    effect's `box_limit(BOX, max_samples |M_j|)` (BOX, or BOX / max |M_j| for the gravity effects at joint j)."""
+    effect's `box_limit(BOX, max_samples |M_j|)` (BOX, or BOX / max |M_j| for the gravity effects at joint j;
+    the payload's own moment |P_j| of 1 kg at the tool for the effects acting on "payload")."""
     lim = np.full(model.n_params, BOX)
-    peak = np.max(moment_norm, axis=0)
+    peak, peak_payload = np.max(moment_norm, axis=0), np.max(payload_norm, axis=0)
     for i, (effect, j) in enumerate(zip(model.effect_of, model.joint_of)):
-        lim[model.n_geometry + i] = model.effect(effect).box_limit(BOX, float(peak[j]) if j >= 0 else 0.0)
+        fx = model.effect(effect)
+        load = peak_payload if "payload" in fx.acts_on else peak
+        lim[model.n_geometry + i] = fx.box_limit(BOX, float(load[j]) if j >= 0 else 0.0)
     return lim
 
 
@@ -653,7 +656,8 @@ def refit(prep: Prepared, base: Baseline, lin: Linear, sel: Selection, settings:
     xs, ok, n_steps, _, _ = core.solve_batch(problem, jnp.asarray(x0s), args, settings, ("x0", "a_ref", "w"))
     xs, ok = np.array(xs), np.asarray(ok)
     r = np.array(gf.residual_batch(jnp.asarray(xs), qj, yj, cj, w, model=model))
-    limits = box_limits(model, np.asarray(gf.moment_norms(jnp.asarray(base.xs[folds]), qj, model=model))[:prep.n])
+    gravity, payload = gf.moment_norms(jnp.asarray(base.xs[folds]), qj, model=model)
+    limits = box_limits(model, np.asarray(gravity)[:prep.n], np.asarray(payload)[:prep.n])
     diverged = []
     for b in range(folds + 1):
         rows = (prep.valid & (prep.fold == b)) if b < folds else prep.valid

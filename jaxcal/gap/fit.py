@@ -17,7 +17,7 @@ import numpy as np
 
 from jaxcal.gap import closed
 from jaxcal.gap.effects import gravity_loads, joint_axes, read, residuals
-from jaxcal.gap.model import GapModel
+from jaxcal.gap.model import G_HAT, GapModel
 from jaxcal.kin.model import frames_single, joint_variables
 
 SIZE_BUCKETS = (96, 192, 320)  # padded sample counts; beyond 320, multiples of 128
@@ -143,15 +143,18 @@ def loads_and_tips(x, q, cov, *, model):
 
 @functools.partial(jax.jit, static_argnames=("model",))
 def moment_norms(x, q, *, model):
-    """|M_j| (N, n; kg m): norm of the gravity moment about each joint of every sample (compliance and bending act on it)."""
+    """(|M_j|, |P_j|), each (N, n; kg m): norms of the gravity moment of the robot's masses (compliance and bending
+    act on it) and of 1 kg at the tool point (payload) about each joint, for every sample."""
     if model.robot.closure is not None:  # closed loops: compliance acts on the actuator load tau_j (jaxcal/gap/closed.py)
-        return jnp.abs(loads_and_tips(x, q, None, model=model)[0])
+        tau = jnp.abs(loads_and_tips(x, q, None, model=model)[0])
+        return tau, tau
     a = x[:model.robot.n_params]
 
     def one(qi):
         F = frames_single(model.robot, a, joint_variables(model.robot, a, qi))
         o, _ = joint_axes(model, F)
-        return jnp.linalg.norm(gravity_loads(model, F, o), axis=1)
+        payload = jnp.cross(F.p[model.robot.tip] - o, jnp.asarray(G_HAT))
+        return jnp.linalg.norm(gravity_loads(model, F, o), axis=1), jnp.linalg.norm(payload, axis=1)
 
     return jax.vmap(one)(q)
 
