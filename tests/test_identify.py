@@ -162,7 +162,8 @@ def test_few_readings_default_estimates_every_parameter_under_a_chosen_bias():
     noise: the base-set estimate is noise-dominated and has fewer than 2 readings per parameter, so identify's
     default estimates every free parameter under the bias, where the schedule stops chosen by k-fold
     (`fit.bias.PRIOR_PATH`). Its error at 200 new positions is below half the base-set schedule's (measured
-    ~0.2 vs ~1.2 mm held out in docs/defaults.md) and the standard errors are the regularised ones (finite)."""
+    ~0.2 vs ~1.2 mm held out in docs/defaults.md); the standard errors are the regularised ones (finite) and the
+    residual's standard deviation counts the effective number of parameters (78 free ones from 60 readings)."""
     from jaxcal.fit.bias import ILL_CONDITIONED_BIAS, PRIOR_PATH
 
     rb = jc.robots.get("talos_left_arm")
@@ -179,3 +180,4 @@ def test_few_readings_default_estimates_every_parameter_under_a_chosen_bias():
     err = lambda f: np.sqrt(np.mean(np.sum((f.predict(new.q) - new.y) ** 2, axis=1)))  # noqa: E731
     assert err(fit) < 0.5 * err(base), (err(fit), err(base))
     assert all(np.isfinite(list(fit.std_errors.values())))
+    assert 0.5 < fit.sigma < 2.0, fit.sigma  # effective degrees of freedom under the bias (noise stated right)

@@ -391,13 +391,12 @@ def identify(
     est_idx = cal.estimated
     Je = cal.J[:, est_idx]
     r_final = core.weighted_residuals(robot, device, cal.x, problem.q, problem.y, problem.w).reshape(-1)
-    dof = max(int(np.sum(problem.w != 0)) - len(est_idx), 1)
-    sigma_hat = float(np.sqrt(r_final @ r_final / dof))
+    readings = int(np.sum(problem.w != 0))
     mu_end = core.bias_schedule(bias_info.get("bias_schedule", None if isinstance(bias, str) else bias))[-1]
-    covariance = _covariance(Je, mu_end, problem.x_scale[est_idx], sigma_hat) if len(est_idx) else None
+    covariance, sigma_hat = _covariance(Je, mu_end, problem.x_scale[est_idx], r_final, readings)
     polished_se = {}
     if cal.polish.get("accepted"):
-        covariance, polished_se = _polished_covariance(cal, sigma_hat, names)
+        covariance, polished_se = _polished_covariance(cal, r_final, readings, names)
     pick = (lambda p, o: p if p is not None else o)
     a_full = jnp.asarray(cal.x)
     to_names = lambda idx: tuple(names[i] for i in idx)  # noqa: E731
@@ -421,17 +420,25 @@ def identify(
     )
 
 
-def _covariance(J, mu: float, scale, sigma_hat: float) -> np.ndarray:
-    """Linearised covariance of the estimate (seed 004 eq 3.31-3.32): sigma^2 (J^T J)^+ without bias; with the
-    bias mu ||(x - x_ref) / s||^2 still on at the end (seed 004 eq 3.12 read as a prior),
-    sigma^2 (J^T J + mu diag(1 / s^2))^-1, so directions the data do not determine keep the prior's spread
-    s / sqrt(mu) instead of an arbitrary pseudo-inverse value."""
+def _covariance(J, mu: float, scale, r, readings: int) -> tuple[np.ndarray | None, float]:
+    """(covariance, sigma): the linearised covariance of the estimate and the weighted residual's standard
+    deviation (seed 004 eq 3.31-3.32). Without bias: sigma^2 (J^T J)^+, sigma^2 = r^T r / (readings - p). With the
+    bias mu ||(x - x_ref) / s||^2 still on at the end (seed 004 eq 3.12 read as a prior): A = J^T J + mu
+    diag(1 / s^2), covariance sigma^2 A^-1, and the degrees of freedom readings - tr(A^-1 J^T J) (the effective
+    number of parameters, below p where the bias holds directions the data leave open). Directions the data do
+    not determine then keep the prior's spread s / sqrt(mu) instead of an arbitrary pseudo-inverse value."""
+    if J.shape[1] == 0:
+        return None, float(np.sqrt(r @ r / max(readings, 1)))
+    JtJ = J.T @ J
     if mu > 0:
-        return sigma_hat**2 * np.linalg.inv(J.T @ J + mu * np.diag(1.0 / np.asarray(scale) ** 2))
-    return sigma_hat**2 * np.linalg.pinv(J.T @ J)
+        A_inv = np.linalg.inv(JtJ + mu * np.diag(1.0 / np.asarray(scale) ** 2))
+        sigma = float(np.sqrt(r @ r / max(readings - np.trace(A_inv @ JtJ), 1.0)))
+        return sigma**2 * A_inv, sigma
+    sigma = float(np.sqrt(r @ r / max(readings - J.shape[1], 1)))
+    return sigma**2 * np.linalg.pinv(JtJ), sigma
 
 
-def _polished_covariance(cal: core.Calibration, sigma_hat: float, names) -> tuple[np.ndarray, dict]:
+def _polished_covariance(cal: core.Calibration, r, readings: int, names) -> tuple[np.ndarray, dict]:
     """Covariance after the final all-parameter stage (`core.polish`): the stage solved every parameter with an
     effect under the bias mu ||(x - x_ref) / s||^2, mu = POLISH_BIAS, so its information is
     J^T J + mu diag(1 / s^2) over those columns (seed 004 eq 3.12 read as a prior) and its covariance
@@ -441,7 +448,7 @@ def _polished_covariance(cal: core.Calibration, sigma_hat: float, names) -> tupl
     held parameters are not at their true values."""
     added = np.setdiff1d(cal.undetermined, cal.no_effect)
     cols = np.sort(np.concatenate([cal.estimated, added]))
-    C = _covariance(cal.J[:, cols], core.POLISH_BIAS, cal.problem.x_scale[cols], sigma_hat)
+    C, _ = _covariance(cal.J[:, cols], core.POLISH_BIAS, cal.problem.x_scale[cols], r, readings)
     pos = np.searchsorted(cols, cal.estimated)
     se = np.sqrt(np.maximum(np.diag(C), 0.0))
     return C[np.ix_(pos, pos)], {names[c]: float(se[k]) for k, c in enumerate(cols) if c in set(added.tolist())}
