@@ -7,7 +7,10 @@ benchmarks/results/gap_real.json. The gravity effects use the URDF inertials of 
 --default-masses the robot's inertials are dropped, so they use the default mass model (1 kg at each
 body origin), written to bench-output/gap_real_default_masses/ and results/gap_real_default_masses.json.
 
-Run: python benchmarks/gap_real.py [--default-masses] [talos tiago ur10]
+With --seed K the folds are cut with seed K (default 0) and the results go to gap_real_seedK (does a finding
+survive another cut of the same samples?).
+
+Run: python benchmarks/gap_real.py [--default-masses] [--seed K] [talos tiago ur10]
 """
 
 from __future__ import annotations
@@ -27,11 +30,11 @@ def without_inertials(robot):
                          extras={k: v for k, v in robot.extras.items() if k != "inertia"})
 
 
-def run(name: str, out: str, default_masses: bool) -> dict:
+def run(name: str, out: str, default_masses: bool, seed: int = 0) -> dict:
     real = jc.realdata.load(name)
     robot = without_inertials(real.robot) if default_masses else real.robot
     t = time.perf_counter()
-    d = jc.gap.diagnose(robot, real.data)
+    d = jc.gap.diagnose(robot, real.data, seed=seed)
     wall = time.perf_counter() - t
     folder = os.path.join(out, name)
     d.plot(folder)
@@ -44,14 +47,16 @@ def run(name: str, out: str, default_masses: bool) -> dict:
                 joints=list(d.joints), selected=[dict(effect=e, joints=list(j)) for e, j in d.selected], shrink=d.shrink,
                 heldout_rms_before_mm=d.heldout_rms_before, heldout_rms_after_mm=d.heldout_rms_after, noise_floor_mm=d.noise_floor,
                 noise_source=d.noise_source, structure_p=d.structure_p, parameters=d.parameters, diverged=d.diverged, top5=top,
-                wall_s=wall)
+                seed=seed, wall_s=wall)
 
 
 def main(args):
     default_masses = "--default-masses" in args
-    names = [a for a in args if a != "--default-masses"] or ["talos", "tiago", "ur10"]
-    tag = "gap_real_default_masses" if default_masses else "gap_real"
-    rows = [run(n, os.path.join("bench-output", tag), default_masses) for n in names]
+    seed = int(args[args.index("--seed") + 1]) if "--seed" in args else 0
+    skip = {"--default-masses", "--seed", str(seed) if "--seed" in args else None}
+    names = [a for a in args if a not in skip] or ["talos", "tiago", "ur10"]
+    tag = ("gap_real_default_masses" if default_masses else "gap_real") + (f"_seed{seed}" if seed else "")
+    rows = [run(n, os.path.join("bench-output", tag), default_masses, seed) for n in names]
     results = os.path.join("benchmarks", "results", f"{tag}.json")
     os.makedirs(os.path.dirname(results), exist_ok=True)
     write_text_atomic(results, json.dumps(rows, indent=1, default=float))
