@@ -8,9 +8,9 @@ benchmarks/results/gap_real.json. The gravity effects use the URDF inertials of 
 body origin), written to bench-output/gap_real_default_masses/ and results/gap_real_default_masses.json.
 
 With --seed K the folds are cut with seed K (default 0) and the results go to gap_real_seedK (does a finding
-survive another cut of the same samples?).
+survive another cut of the same samples?); --max-steps N sets the LM steps of every fit (default diagnose's 200).
 
-Run: python benchmarks/gap_real.py [--default-masses] [--seed K] [talos tiago ur10]
+Run: python benchmarks/gap_real.py [--default-masses] [--seed K] [--max-steps N] [talos tiago ur10]
 """
 
 from __future__ import annotations
@@ -30,11 +30,11 @@ def without_inertials(robot):
                          extras={k: v for k, v in robot.extras.items() if k != "inertia"})
 
 
-def run(name: str, out: str, default_masses: bool, seed: int = 0) -> dict:
+def run(name: str, out: str, default_masses: bool, seed: int = 0, max_steps: int = 200) -> dict:
     real = jc.realdata.load(name)
     robot = without_inertials(real.robot) if default_masses else real.robot
     t = time.perf_counter()
-    d = jc.gap.diagnose(robot, real.data, seed=seed)
+    d = jc.gap.diagnose(robot, real.data, seed=seed, max_steps=max_steps)
     wall = time.perf_counter() - t
     folder = os.path.join(out, name)
     d.plot(folder)
@@ -47,16 +47,17 @@ def run(name: str, out: str, default_masses: bool, seed: int = 0) -> dict:
                 joints=list(d.joints), selected=[dict(effect=e, joints=list(j)) for e, j in d.selected], shrink=d.shrink,
                 heldout_rms_before_mm=d.heldout_rms_before, heldout_rms_after_mm=d.heldout_rms_after, noise_floor_mm=d.noise_floor,
                 noise_source=d.noise_source, structure_p=d.structure_p, parameters=d.parameters, diverged=d.diverged, top5=top,
-                seed=seed, wall_s=wall)
+                seed=seed, max_steps=max_steps, wall_s=wall)
 
 
 def main(args):
     default_masses = "--default-masses" in args
-    seed = int(args[args.index("--seed") + 1]) if "--seed" in args else 0
-    skip = {"--default-masses", "--seed", str(seed) if "--seed" in args else None}
-    names = [a for a in args if a not in skip] or ["talos", "tiago", "ur10"]
+    option = (lambda flag, default: int(args[args.index(flag) + 1]) if flag in args else default)  # noqa: E731
+    seed, max_steps = option("--seed", 0), option("--max-steps", 200)
+    values = {args[args.index(f) + 1] for f in ("--seed", "--max-steps") if f in args}
+    names = [a for a in args if not a.startswith("--") and a not in values] or ["talos", "tiago", "ur10"]
     tag = ("gap_real_default_masses" if default_masses else "gap_real") + (f"_seed{seed}" if seed else "")
-    rows = [run(n, os.path.join("bench-output", tag), default_masses, seed) for n in names]
+    rows = [run(n, os.path.join("bench-output", tag), default_masses, seed, max_steps) for n in names]
     results = os.path.join("benchmarks", "results", f"{tag}.json")
     os.makedirs(os.path.dirname(results), exist_ok=True)
     write_text_atomic(results, json.dumps(rows, indent=1, default=float))
