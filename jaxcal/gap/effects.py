@@ -85,6 +85,12 @@ def gravity_loads(model: GapModel, F, o):
     return jnp.stack(loads)
 
 
+def payload_loads(p, o):
+    """Gravity moment P_j (n, 3; kg m per kg) of a unit mass at the tool point p about each joint axis point o_j:
+    (p - o_j) x g_hat."""
+    return jnp.cross(p - o, jnp.asarray(G_HAT))
+
+
 def open_tool_pose(model: GapModel, x, q, cov):
     """Tip pose (R, p) of an open chain with the robot-side effects, for one sample: joint offsets, then the
     chain, then the gravity rotations dphi_j about the joint axes (o_j, z_j) of everything distal,
@@ -102,7 +108,7 @@ def open_tool_pose(model: GapModel, x, q, cov):
             M = gravity_loads(model, F, o)
             dphi = dphi + sum(fx.tool_rotation(params_of(model, e, fx), M, z) for fx in gravity)
         if payload:
-            P = jnp.cross(p - o, jnp.asarray(G_HAT))
+            P = payload_loads(p, o)
             dphi = dphi + sum(fx.tool_rotation(params_of(model, e, fx), P, z) for fx in payload)
         p = p + jnp.sum(jnp.cross(dphi, p - o), axis=0)
         R = exp_so3(jnp.sum(dphi, axis=0)) @ R
@@ -130,4 +136,4 @@ def residuals(model: GapModel, x, q, y, cov, w):
 
 
 __all__ = ["EFFECTS", "EFFECT_SCALE", "GLOBAL_EFFECTS", "JOINT_EFFECTS", "NEEDS", "GapModel", "gap_model", "gravity_loads",
-           "joint_axes", "open_tool_pose", "read", "residuals", "tool_pose"]
+           "joint_axes", "open_tool_pose", "payload_loads", "read", "residuals", "tool_pose"]

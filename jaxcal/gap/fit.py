@@ -16,8 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.gap import closed
-from jaxcal.gap.effects import gravity_loads, joint_axes, read, residuals
-from jaxcal.gap.model import G_HAT, GapModel
+from jaxcal.gap.effects import gravity_loads, joint_axes, payload_loads, read, residuals
+from jaxcal.gap.model import GapModel
 from jaxcal.kin.model import frames_single, joint_variables
 
 SIZE_BUCKETS = (96, 192, 320)  # padded sample counts; beyond 320, multiples of 128
@@ -153,7 +153,7 @@ def moment_norms(x, q, *, model):
     def one(qi):
         F = frames_single(model.robot, a, joint_variables(model.robot, a, qi))
         o, _ = joint_axes(model, F)
-        payload = jnp.cross(F.p[model.robot.tip] - o, jnp.asarray(G_HAT))
+        payload = payload_loads(F.p[model.robot.tip], o)
         return jnp.linalg.norm(gravity_loads(model, F, o), axis=1), jnp.linalg.norm(payload, axis=1)
 
     return jax.vmap(one)(q)
