@@ -496,12 +496,13 @@ def _robot_args(p):
     p.add_argument("--tip", help="URDF: last link of the chain")
 
 
-def _solver_args(p, solver_default="lm", max_steps_default=200):
+def _solver_args(p, solver_default="lm", max_steps_default=200, max_steps_help="200"):
     """The calibration core's solver settings, the same on every command that fits (`core.Settings`)."""
     p.add_argument("--solver", choices=tuple(SOLVERS), default=solver_default,
                    help=f"least-squares solver (default {solver_default or 'lm'})")
     p.add_argument("--max-steps", dest="max_steps", type=positive_int, default=max_steps_default,
-                   help="solver step limit (default 200); a diagnosis whose baseline stops at it says so and names no effect")
+                   help=f"solver step limit (default {max_steps_help}); a diagnosis whose baseline stops at it says so and "
+                        "names no effect")
     p.add_argument("--rtol", type=positive_float, help="solver relative tolerance (default: the core's)")
     p.add_argument("--atol", type=positive_float, help="solver absolute tolerance (default: the core's)")
 
@@ -625,7 +626,7 @@ def build_parser() -> argparse.ArgumentParser:
     _data_args(d)
     d.add_argument("--folds", type=folds_int, default=5, help="cross-validation folds (default 5)")
     d.add_argument("--seed", type=int, default=0, help="seed of the fold split (default 0)")
-    _solver_args(d)
+    _solver_args(d, max_steps_default=None, max_steps_help="1000 for the baselines, 200 for the refits")
     d.add_argument("--sigma-position", dest="sigma_position", type=positive_float,
                    help="instrument noise in m per axis: the noise floor and the noise test when there are no repeated poses")
     d.add_argument("--sigma-orientation", dest="sigma_orientation", type=positive_float, help="instrument orientation noise in rad")

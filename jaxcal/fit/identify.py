@@ -242,6 +242,37 @@ def _rms_mm(problem: core.Problem, a_full) -> tuple[float | None, float | None]:
     return rms(pe), rms(oe)
 
 
+def calibrate_with_default_bias(problem: core.Problem, settings: core.Settings, *, base: bool = True, bias=None,
+                                multistart: int = 0, seed: int = 0, base_tol: float | None = None,
+                                progress=None) -> tuple[core.Calibration, dict]:
+    """`core.calibrate` with `identify`'s bias rule (its docstring, `bias`): unbiased first; when that estimate is
+    noise-dominated, again from the same start with ILL_CONDITIONED_BIAS, or, for an open chain with few
+    readings, every free parameter under PRIOR_PATH stopped by k-fold held-out error. Every caller that stands for
+    `identify` on some samples (the gap diagnosis' fold baselines) uses this, so its result is identify's.
+    Returns (calibration, record of the rule: bias_schedule, bias_every_free, weakest_standard_error, ...)."""
+    cal = core.calibrate(problem, settings, base=base, bias=None if isinstance(bias, str) else bias, multistart=multistart,
+                         seed=seed, base_tol=base_tol, progress=progress)
+    bias_info = {}
+    if bias is None or (isinstance(bias, str) and bias == "heldout"):
+        weakest = weakest_standard_error(cal)
+        if weakest > NOISE_DOMINATED:  # noise-dominated estimate: stop the bias schedule above 0
+            every_free = bias is None and base and problem.robot.closure is None and few_readings(cal)
+            if every_free:  # every free parameter under the bias, where it stops chosen by k-fold (`fit.bias`)
+                cal = dataclasses.replace(cal, estimated=np.flatnonzero(problem.free))
+                schedule, scores = choose_bias(problem, cal, settings, path=PRIOR_PATH)
+                bias_info["bias_heldout"] = scores.tolist()
+            elif bias is None:
+                schedule = list(ILL_CONDITIONED_BIAS)
+            else:  # where the schedule stops, chosen by k-fold held-out error (`jaxcal.fit.bias`)
+                schedule, scores = choose_bias(problem, cal, settings)
+                bias_info["bias_heldout"] = scores.tolist()
+            bias_info.update(bias_schedule=schedule, bias_every_free=every_free)
+            cal = core.calibrate(problem, settings, base=base and not every_free, bias=schedule, multistart=multistart,
+                                 seed=seed, base_tol=base_tol, started=cal, progress=progress)
+        bias_info["weakest_standard_error"] = weakest
+    return cal, bias_info
+
+
 def identify(
     robot: Robot,
     data: Dataset,
@@ -332,26 +363,8 @@ def identify(
                                 free=free_mask, a_ref=np.concatenate([np.asarray(a0), np.asarray(d0)]), bounds=bounds,
                                 sample_weights=sw[keep] if sample_weights is not None else None)
     settings = core.Settings(solver, max_steps, rtol, atol)
-    cal = core.calibrate(problem, settings, base=base, bias=None if isinstance(bias, str) else bias, multistart=multistart,
-                         seed=seed, base_tol=base_tol, progress=progress)
-    bias_info = {}
-    if bias is None or (isinstance(bias, str) and bias == "heldout"):
-        weakest = weakest_standard_error(cal)
-        if weakest > NOISE_DOMINATED:  # noise-dominated estimate: stop the bias schedule above 0
-            every_free = bias is None and base and robot.closure is None and few_readings(cal)
-            if every_free:  # every free parameter under the bias, where it stops chosen by k-fold (`fit.bias`)
-                cal = dataclasses.replace(cal, estimated=np.flatnonzero(problem.free))
-                schedule, scores = choose_bias(problem, cal, settings, path=PRIOR_PATH)
-                bias_info["bias_heldout"] = scores.tolist()
-            elif bias is None:
-                schedule = list(ILL_CONDITIONED_BIAS)
-            else:  # where the schedule stops, chosen by k-fold held-out error (`jaxcal.fit.bias`)
-                schedule, scores = choose_bias(problem, cal, settings)
-                bias_info["bias_heldout"] = scores.tolist()
-            bias_info.update(bias_schedule=schedule, bias_every_free=every_free)
-            cal = core.calibrate(problem, settings, base=base and not every_free, bias=schedule, multistart=multistart,
-                                 seed=seed, base_tol=base_tol, started=cal, progress=progress)
-        bias_info["weakest_standard_error"] = weakest
+    cal, bias_info = calibrate_with_default_bias(problem, settings, base=base, bias=bias, multistart=multistart,
+                                                 seed=seed, base_tol=base_tol, progress=progress)
     health = assess(cal, unclosed_start=unclosed + tuple(_unclosed_excluded), sample_index=keep, settings=settings)
     if robot.closure is not None and not _unclosed_excluded:
         # re-check the closure at the solution: samples that do not close there are left out and the fit repeated

@@ -2,7 +2,8 @@
 
 A fold is a sample-weight mask, so fold b's baseline is exactly `identify` on that fold's samples
 (same start: device frame registered onto the readings, then the frames-only fit; same base set;
-same solver), and the all-data baseline is `identify` on every sample.
+same solver; same bias rule: `calibrate_with_default_bias`), and the all-data baseline is `identify` on
+every sample.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import dataclasses
 import numpy as np
 
 from jaxcal.fit import core
-from jaxcal.fit.identify import residual_weights
+from jaxcal.fit.identify import calibrate_with_default_bias, residual_weights
 
 
 def baseline_fits(robot, data, train_masks, *, sigma_position: float, sigma_orientation: float,
@@ -30,7 +31,7 @@ def baseline_fits(robot, data, train_masks, *, sigma_position: float, sigma_orie
     settings = settings or core.Settings()
     if max_steps is not None:
         settings = dataclasses.replace(settings, max_steps=max_steps)
-    return [core.calibrate(problem.with_weights(problem.w * (np.asarray(m) & closes)[:, None]), settings)
+    return [calibrate_with_default_bias(problem.with_weights(problem.w * (np.asarray(m) & closes)[:, None]), settings)[0]
             for m in train_masks]
 
 
