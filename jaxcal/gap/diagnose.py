@@ -67,8 +67,8 @@ PRIOR_MU = 1.0
 # determined geometric directions into geometries where held-out samples no longer close (5 of 100 blind cases).
 CLOSED_BASELINE_STEPS = 40
 # Default step limit of the open-chain baselines: a verdict needs converged baselines (issue 21 item 1), and the
-# TALOS folds need ~1000 LM steps (docs/gap.md), a UR10 with URDF inertials more than 200. A baseline that
-# converges stops early, so the limit costs time only where it is needed. Refits keep `core.Settings`' limit.
+# TALOS folds need ~1000 LM steps (docs/gap.md). A baseline that converges stops early, so the limit costs time
+# only where it is needed. Refits keep `core.Settings`' limit.
 BASELINE_STEPS = 1000
 BOX = 0.1  # sane box of a refit around its baseline or nominal start: 0.1 m or rad of geometry or effect deflection, 10 % of a gain
 DIVERGED_RATIO = 3.0  # a refit whose (held-out) RMS exceeds this multiple of the baseline's diverged
