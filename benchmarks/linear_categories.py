@@ -37,7 +37,8 @@ STYLES = [dict(marker="o", ls="-", ms=7), dict(marker="s", ls="--", ms=5),
 
 
 def _summary(r) -> dict:
-    return {"converged": r.converged, "iterations": r.iterations, "rmspe": r.rmspe.tolist(), "rmsoe": r.rmsoe.tolist(),
+    rmsoe = [None if np.isnan(v) else v for v in r.rmsoe.tolist()]  # NaN (no rotations measured) -> JSON null
+    return {"converged": r.converged, "iterations": r.iterations, "rmspe": r.rmspe.tolist(), "rmsoe": rmsoe,
             "rmse": r.rmse.tolist(), "orthogonality": r.orthogonality.tolist(), "condition": r.condition.tolist(),
             "rank": r.rank.tolist()}
 

@@ -125,6 +125,19 @@ def test_position_calibration_table_6_6_converges_like_figure_6_6(mrr1, home):
     assert runs[("static", "pry")].iterations == 2 and runs[("static", "skew")].iterations == 2
 
 
+def test_rmsoe_is_nan_without_measured_rotations(mrr1, home):
+    """Position scheme from positions only: there is no measured orientation, so RMSOE is NaN at every
+    iteration (not the error against a stand-in identity rotation); given R_meas it is the real
+    orientation error (eq 4.31) although the position scheme does not fit it."""
+    without = linear_calibrate(mrr1, home, None, P_ACTUAL[None], "position", tol=1e-6)
+    assert without.converged and np.all(np.isnan(without.rmsoe)) and len(without.rmsoe) == len(without.rmspe)
+    with_r = linear_calibrate(mrr1, home, R_ACTUAL[None], P_ACTUAL[None], "position", tol=1e-6)
+    np.testing.assert_array_equal(with_r.rmspe, without.rmspe)
+    R_nominal = np.asarray(jc.forward(mrr1, mrr1.nominal, home).R)[0]
+    angle = np.arccos(np.clip((np.trace(R_ACTUAL @ R_nominal.T) - 1) / 2, -1, 1))
+    assert np.isfinite(with_r.rmsoe).all() and with_r.rmsoe[0] == pytest.approx(angle / np.sqrt(3), rel=1e-4)  # RMS of a 3-vector = norm / sqrt 3
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_position_calibration_converges_within_6_for_random_errors(mrr1, seed):
     """Errors drawn N(0, 0.003) on all 18 module parameters (Table 6.3), 8 random poses, noise-free,

@@ -198,7 +198,7 @@ class LinearResult:
     error: str
     update: str
     rmspe: np.ndarray
-    rmsoe: np.ndarray
+    rmsoe: np.ndarray  # NaN throughout when no rotations were measured (position scheme with R_meas=None)
     rmse: np.ndarray
     orthogonality: np.ndarray
     condition: np.ndarray  # s_1 / s_r of J at each iteration, over the r singular values the pseudo-inverse uses
@@ -240,10 +240,11 @@ def linear_calibrate(robot: Robot, Q, R_meas, p_meas, scheme: str = "position", 
     chain, st = chain_of(robot)
     Q = np.atleast_2d(np.asarray(Q, float))
     p_meas = np.asarray(p_meas, float).reshape(-1, 3)
-    if R_meas is None:
+    rotations_measured = R_meas is not None
+    if not rotations_measured:
         if scheme == "pose":
             raise ValueError("the pose scheme needs measured rotations R_meas (m, 3, 3)")
-        R_meas = np.broadcast_to(np.eye(3), (len(Q), 3, 3))
+        R_meas = np.broadcast_to(np.eye(3), (len(Q), 3, 3))  # placeholder: the position scheme never reads it
     R_meas = np.asarray(R_meas, float).reshape(-1, 3, 3)
     if not (len(Q) == len(p_meas) == len(R_meas)) or Q.shape[1] != robot.n_inputs:
         raise ValueError(f"Q {Q.shape}, R_meas {R_meas.shape}, p_meas {p_meas.shape}: need m joint vectors of "
@@ -255,7 +256,7 @@ def linear_calibrate(robot: Robot, Q, R_meas, p_meas, scheme: str = "position", 
     for it in range(max_iter + 1):
         dX, dp, db = pose_errors(chain, bs, Rs, Qj, Rmj, pmj, scheme=scheme, error=error, inverse=inverse)
         hist["rmspe"].append(_rms(dp))
-        hist["rmsoe"].append(_rms(db))
+        hist["rmsoe"].append(_rms(db) if rotations_measured else float("nan"))
         hist["rmse"].append(_rms(dX))
         hist["orth"].append(orthogonality(Rs))
         if not np.isfinite(hist["rmse"][-1]):
