@@ -92,15 +92,36 @@ def test_level1_monte_carlo_stops_by_eq_5_7(mrr1_data):
     assert loose.stopped and loose.runs == 2
 
 
-def test_level2_monte_carlo_over_configuration_sets(mrr1_data):
+def test_level2_global_mean_and_stability_loop_follow_eq_5_10(mrr1_data):
+    """Loop 3 of Figure 5.2: the global mean is the mean of the sets' level-1 means (eq 5.10); sets
+    are added m per round until the running global mean changes by less than global_tol when a set
+    is added (eq 5.7 over sets), and the result keeps the sets up to that point. A tolerance no
+    change can meet runs to max_sets; a loose one stops at the second set (the first change)."""
     rb, a_true, _ = mrr1_data
-    res = mc.level2(rb, jnp.asarray(a_true), "pose", m=3, n_configurations=8, tol=0.0, batch=4, max_runs=4,
-                    population=20, generations=40, chunk=20)
-    assert res.means.shape == (3, 18) and len(res.level1) == 3
-    assert np.allclose(res.spread, res.means.std(0, ddof=1))
-    assert all(r.runs == 4 and np.all(np.abs(r.dg) <= 0.005 + 1e-15) for r in res.level1)
-    # different configuration sets give different level-1 means (the point of level 2)
-    assert np.max(np.abs(res.means[0] - res.means[1])) > 0
+    kw = dict(m=2, n_configurations=1, tol=0.0, batch=4, max_runs=4, population=20, generations=40, chunk=20,
+              stop_on="parameters")
+    never = mc.level2(rb, jnp.asarray(a_true), "pose", max_sets=4, global_tol=0.0, **kw)
+    assert not never.stopped and never.sets == 4 and never.means.shape == (4, 18)
+    assert all(r.runs == 4 and np.all(np.abs(r.dg) <= 0.005 + 1e-15) for r in never.level1)
+    means = np.stack([r.dg.mean(0) for r in never.level1])
+    np.testing.assert_allclose(never.global_mean, means.sum(0) / 4, rtol=0, atol=1e-15)
+    for k in range(1, 5):
+        np.testing.assert_allclose(never.global_running[k - 1], means[:k].mean(0), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(never.spread, means.std(0, ddof=1))
+    change = np.abs(never.global_running[-1] - never.global_running[-2])
+    assert 0 < change.max() < 0.005  # one configuration per set: the sets' means differ, and average out
+    threshold = np.median(change)
+    np.testing.assert_array_equal(never.stable(threshold), change < threshold)
+    # sets are independent draws: the first two sets of a 4-set run are a 2-set run's sets
+    first = mc.level2(rb, jnp.asarray(a_true), "pose", max_sets=4, global_tol=1.0, **kw)
+    assert first.stopped and first.sets == 2
+    np.testing.assert_allclose(first.means, never.means[:2], rtol=0, atol=1e-15)
+    # the global stop applies eq 5.7 to the set means: the first k whose change is below the tolerance
+    set_change = np.max(np.abs(np.diff(never.global_running, axis=0)), axis=1)  # changes at sets 2, 3, 4
+    middle = mc.level2(rb, jnp.asarray(a_true), "pose", max_sets=4, global_tol=float(set_change[1:].max()) * 1.0001,
+                       **kw)
+    expected = 2 + int(np.argmax(set_change < set_change[1:].max() * 1.0001))
+    assert middle.stopped and middle.sets == expected
 
 
 def test_level1_on_tip_positions_stops_where_the_redundant_parameters_do_not(mrr1_data):
@@ -117,6 +138,8 @@ def test_level1_on_tip_positions_stops_where_the_redundant_parameters_do_not(mrr
     change = np.max(np.abs(np.diff(mc.running_means(tip.samples), axis=0)), axis=1)
     assert change[-1] < 1e-6 and np.all(change[:-1] >= 1e-6)
     assert np.array_equal(tip.dg, params.dg[: tip.runs])  # same GA runs, only the rule differs
+    default = mc.level1(rb, data, **kw)  # the default rule is the one that stops on redundant parameters
+    assert default.stop_on == "tip" and default.stopped and default.runs == tip.runs
     with pytest.raises(ValueError, match="stop_on"):
         mc.level1(rb, data, stop_on="angles", **kw)
 
@@ -125,8 +148,8 @@ def test_level2_vmapped_over_configuration_sets_equals_the_loop(mrr1_data):
     """Level 2 with every batch run for all sets in one vmapped call gives the runs, stopping
     points and means of the loop over sets (same seeds)."""
     rb, a_true, _ = mrr1_data
-    kw = dict(m=3, n_configurations=8, tol=2e-6, batch=4, max_runs=8, population=20, generations=40, chunk=20,
-              stop_on="tip")
+    kw = dict(m=3, max_sets=3, n_configurations=8, tol=2e-6, batch=4, max_runs=8, population=20, generations=40,
+              chunk=20, stop_on="tip")
     vec = mc.level2(rb, jnp.asarray(a_true), "pose", vectorized=True, **kw)
     loop = mc.level2(rb, jnp.asarray(a_true), "pose", vectorized=False, **kw)
     assert [r.runs for r in vec.level1] == [r.runs for r in loop.level1]

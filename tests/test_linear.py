@@ -135,7 +135,8 @@ def test_rmsoe_is_nan_without_measured_rotations(mrr1, home):
     np.testing.assert_array_equal(with_r.rmspe, without.rmspe)
     R_nominal = np.asarray(jc.forward(mrr1, mrr1.nominal, home).R)[0]
     angle = np.arccos(np.clip((np.trace(R_ACTUAL @ R_nominal.T) - 1) / 2, -1, 1))
-    assert np.isfinite(with_r.rmsoe).all() and with_r.rmsoe[0] == pytest.approx(angle / np.sqrt(3), rel=1e-4)  # RMS of a 3-vector = norm / sqrt 3
+    assert np.isfinite(with_r.rmsoe).all()
+    assert with_r.rmsoe[0] == pytest.approx(angle / np.sqrt(3), rel=1e-4)  # RMS of a 3-vector = norm / sqrt 3
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -112,23 +112,24 @@ def plot_monte_carlo_level1(running_mean, changes: dict, tols: dict, path: str, 
     return save_atomic(fig, path)
 
 
-def plot_monte_carlo_level2(means, names, tip_error, path: str, unit_scale: float = 1e3, title: str = "Monte Carlo level 2"):
-    """(a) level-1 mean of each identified error per random configuration set (seed 000 Figure 6.12);
-    (b) per set, the error of the tip positions predicted by the mean-parameter robot at check configurations."""
-    means = np.asarray(means) * unit_scale
-    sets = np.arange(1, means.shape[0] + 1)
+def plot_monte_carlo_level2(running_global, names, tip_error, path: str, stable=None, unit_scale: float = 1e3,
+                            title: str = "Monte Carlo level 2"):
+    """(a) running global mean (eq 5.10) of each identified error as configuration sets are added
+    (seed 000 Figure 6.12), dashed where the parameter is not stable (`stable` mask, eq 5.7);
+    (b) per set, the error of the tip positions its level-1 runs predict at check configurations."""
+    running_global = np.asarray(running_global) * unit_scale
+    sets = np.arange(1, running_global.shape[0] + 1)
+    stable = np.ones(len(names), bool) if stable is None else np.asarray(stable)
     fig, (a, b) = plt.subplots(1, 2, figsize=(13, 4.5), gridspec_kw={"width_ratios": [3, 2], "wspace": 0.7})
     a.set_prop_cycle(color=plt.cm.tab20(np.linspace(0, 1, 20)))
     for i, name in enumerate(names):
-        a.plot(sets, means[:, i], "o-", ms=3, lw=1, label=name)
-    a.set_xlabel("configuration set")
-    a.set_ylabel("level-1 mean of dg (mm / mrad)")
-    a.set_title("(a) parameter means across configuration sets")
+        a.plot(sets, running_global[:, i], "-" if stable[i] else "--", lw=1, label=name if stable[i] else f"{name} (unstable)")
+    a.set_xlabel("configuration sets")
+    a.set_ylabel("global mean of dg, eq 5.10 (mm / mrad)")
+    a.set_title("(a) running global mean over configuration sets")
     a.grid(True, alpha=0.3)
-    a.set_xticks(sets)
-    a.legend(fontsize=7, ncol=2, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    a.legend(fontsize=6.5, ncol=1, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     b.bar(sets, np.asarray(tip_error) * unit_scale, color="tab:green")
-    b.set_xticks(sets)
     b.set_xlabel("configuration set")
     b.set_ylabel("max error, mean predicted tip (mm)")
     b.set_title("(b) predicted tip positions vs truth")
