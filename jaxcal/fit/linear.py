@@ -70,10 +70,15 @@ class ModuleState:
     bs: np.ndarray
     theta: np.ndarray
     Rs: np.ndarray
+    rows: np.ndarray  # (n, 6) indices of module i's (bx, by, bz, pitch, roll, yaw) in the robot's parameter vector
 
     def vector(self) -> np.ndarray:
-        """The robot parameter vector (bx, by, bz, pitch, roll, yaw per module): valid for the PRY update."""
-        return np.concatenate([self.bs, self.theta], axis=1).reshape(-1)
+        """The robot parameter vector, each module's (bx, by, bz, pitch, roll, yaw) at its rows (a reconnected
+        robot, `ga.reconfig.reorder`, keeps each module's rows while the chain order changes): valid for the
+        PRY update."""
+        a = np.empty(self.rows.size)
+        a[self.rows.reshape(-1)] = np.concatenate([self.bs, self.theta], axis=1).reshape(-1)
+        return a
 
 
 def chain_of(robot: Robot) -> tuple[Chain, ModuleState]:
@@ -87,9 +92,13 @@ def chain_of(robot: Robot) -> tuple[Chain, ModuleState]:
     base_R = np.eye(3) if robot.base is None else np.asarray(robot.base.R, float)
     base_p = np.zeros(3) if robot.base is None else np.asarray(robot.base.p, float)
     chain = Chain(tuple(b.kind for b in robot.bodies), tuple(tuple(b.inputs) for b in robot.bodies), base_R, base_p)
-    rows = np.asarray(robot.nominal_np)[np.array([b.rows for b in robot.bodies])]
+    index = np.array([b.rows for b in robot.bodies])
+    if sorted(index.reshape(-1)) != list(range(robot.n_params)):
+        raise ValueError(f"robot {robot.name!r}: the modules' rows must cover the {robot.n_params} parameters once each")
+    rows = np.asarray(robot.nominal_np)[index]
     theta = rows[:, 3:6]
-    return chain, ModuleState(rows[:, 0:3].copy(), theta.copy(), np.asarray(jax.vmap(pry_to_matrix)(jnp.asarray(theta))))
+    return chain, ModuleState(rows[:, 0:3].copy(), theta.copy(), np.asarray(jax.vmap(pry_to_matrix)(jnp.asarray(theta))),
+                              index)
 
 
 def tip_pose(chain: Chain, bs, Rs, q, post=None):
@@ -273,6 +282,6 @@ def linear_calibrate(robot: Robot, Q, R_meas, p_meas, scheme: str = "position", 
         hist["cond"].append(float(sv[0] / sv[rank - 1]))
         dg = pseudo_inverse_step(J, dX).reshape(-1, 6)
         bs, theta, Rs = apply_increment(bs, theta, Rs, jnp.asarray(dg), update)
-    state = ModuleState(np.asarray(bs), np.asarray(theta), np.asarray(Rs))
+    state = ModuleState(np.asarray(bs), np.asarray(theta), np.asarray(Rs), st.rows)
     return LinearResult(state, scheme, error, update, np.array(hist["rmspe"]), np.array(hist["rmsoe"]), np.array(hist["rmse"]),
                         np.array(hist["orth"]), np.array(hist["cond"]), np.array(hist["rank"]), it, converged)
