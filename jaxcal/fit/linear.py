@@ -229,14 +229,17 @@ def _rms(x) -> float:
 
 def linear_calibrate(robot: Robot, Q, R_meas, p_meas, scheme: str = "position", category: int | None = None,
                      error: str = "vect", update: str = "pry", inverse: str = "atan2", axes: str = "static",
-                     tol: float = 1e-6, max_iter: int = 20) -> LinearResult:
+                     tol: float = 1e-6, max_iter: int = 20, angle_scale: float = 1.0) -> LinearResult:
     """The iterative linear calibration of Figure 4.1 from m measured tip poses.
 
     Q (m, n_inputs) joint values; R_meas (m, 3, 3) (may be None for the position scheme) and p_meas
     (m, 3) measured tip poses. scheme "position" (eq 4.5) or "pose" (eq 4.2); category 1-4 of
     Table 4.1 sets (error, update), otherwise they are given directly; inverse: the PRY inversion
     used by the PRY-difference error; axes: "static" (J of the update's own increments) or "moving"
-    (the seed's eq 4.3b, see `error_jacobian`). Stops when the RMSE of the scheme's error vector <= tol."""
+    (the seed's eq 4.3b, see `error_jacobian`). Stops when the RMSE of the scheme's error vector <= tol.
+    angle_scale: the unit, in rad, in which the pseudo-inverse's minimum-norm step measures the rotation
+    increments (pi/180: degrees); where J is rank-deficient (one pose) it decides how a correction is shared
+    between body vectors and angles: dg = D pinv(J D) Delta X with D = diag(1, 1, 1, s, s, s) per module."""
     if scheme not in SCHEMES:
         raise ValueError(f"unknown scheme {scheme!r}; expected one of {SCHEMES}")
     if category is not None:
@@ -280,7 +283,8 @@ def linear_calibrate(robot: Robot, Q, R_meas, p_meas, scheme: str = "position", 
         rank = int(np.sum(sv > np.finfo(float).eps * max(J.shape) * sv[0]))
         hist["rank"].append(rank)
         hist["cond"].append(float(sv[0] / sv[rank - 1]))
-        dg = pseudo_inverse_step(J, dX).reshape(-1, 6)
+        D = np.tile(np.array([1.0, 1.0, 1.0, angle_scale, angle_scale, angle_scale]), J.shape[1] // 6)
+        dg = (D * pseudo_inverse_step(J * D, dX)).reshape(-1, 6)
         bs, theta, Rs = apply_increment(bs, theta, Rs, jnp.asarray(dg), update)
     state = ModuleState(np.asarray(bs), np.asarray(theta), np.asarray(Rs), st.rows)
     return LinearResult(state, scheme, error, update, np.array(hist["rmspe"]), np.array(hist["rmsoe"]), np.array(hist["rmse"]),
