@@ -130,7 +130,8 @@ def gecaro_priority(robot: Robot, overrides: dict) -> np.ndarray:
 
 @dataclasses.dataclass
 class Calibration:
-    """Outcome of `calibrate`: parameters, method unknowns, residual RMS per iteration."""
+    """Outcome of `calibrate`: parameters, method unknowns (and their start), residual RMS per
+    iteration and the step length taken at each iteration of the "gecaro" solver."""
 
     a: np.ndarray
     c: np.ndarray
@@ -139,6 +140,8 @@ class Calibration:
     rms: np.ndarray  # RMS of the residual before each iteration and at the end
     converged: bool
     seconds: float
+    c_start: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    step_lengths: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
 
 @functools.partial(jax.jit, static_argnames=("robot", "method", "nr", "max_steps"))
@@ -160,49 +163,108 @@ def _lm_on_base(x, idx, Qi, Qj, Y, *, robot, method, nr, max_steps):
     return sol.z, sol.steps, sol.converged
 
 
+SUFFICIENT_DECREASE = 1e-4  # Armijo constant of the ILS step-length control
+MAX_HALVINGS = 30
+STATIONARY = 1e-8  # |W_b dx| / |r| below this: r is orthogonal to the columns of W_b (a least-squares minimum)
+
+
+def step_length(sum_sq, f0: float, slope: float) -> float:
+    """Step length t of the ILS update x + t dx: the first of 1, 1/2, 1/4, ... (MAX_HALVINGS halvings)
+    with sum_sq(t) <= f0 - SUFFICIENT_DECREASE * t * slope (Armijo), where slope = 2 |W_b dx|^2 is the
+    decrease rate of the sum of squares along the Gauss-Newton direction dx = -W_b^+ r; 0 when none.
+
+    Seed 001 (§6) takes the full linearised step; the halving only acts where the full step would
+    raise the residual, which is what makes it diverge from large parameter errors."""
+    t = 1.0
+    for _ in range(MAX_HALVINGS + 1):
+        f = sum_sq(t)
+        if np.isfinite(f) and f <= f0 - SUFFICIENT_DECREASE * t * slope:
+            return t
+        t *= 0.5
+    return 0.0
+
+
+def start_unknowns(robot: Robot, points, a0, c0=None) -> np.ndarray:
+    """Start of the method's own unknowns: c0 when given; for the unknown-plane methods the nearest
+    plane to the model's tool points at a0 (seed 001 §3.3.1); otherwise the known plane of `points`."""
+    from jaxcal.fit.methods import initial_plane
+
+    if c0 is not None:
+        return np.asarray(c0, float)
+    if points.method in ("plane1_unknown", "plane2_unknown"):
+        return initial_plane(robot, points.method, a0, points.Qi, points.Qj)
+    return np.asarray(points.plane, float)
+
+
+def _iterated_least_squares(res, jac, x, idx, max_iter, tol):
+    """Seed 001 eq 9-10 iterated: dx = -W_b^+ r with W_b and r updated each iteration, the step
+    length chosen by `step_length`. Returns (x, iterations, rms list, step lengths, converged)."""
+    r = np.asarray(res(x))
+    rms, steps, converged, it = [float(np.sqrt(np.mean(r ** 2)))], [], False, 0
+    for it in range(1, max_iter + 1):
+        Wb = np.asarray(jac(x))[:, idx]
+        dx = -np.linalg.lstsq(Wb, r, rcond=None)[0]
+        f0, Wdx = float(r @ r), Wb @ dx
+        t = step_length(lambda t: float(np.sum(np.asarray(res(_moved(x, idx, t * dx))) ** 2)), f0, 2.0 * float(Wdx @ Wdx))
+        steps.append(t)
+        if t == 0.0:  # no step length lowers the residual: a minimum when r is orthogonal to W_b
+            converged = np.linalg.norm(Wdx) <= STATIONARY * np.sqrt(f0)
+            rms.append(rms[-1])
+            break
+        x = _moved(x, idx, t * dx)
+        r = np.asarray(res(x))
+        rms.append(float(np.sqrt(np.mean(r ** 2))))
+        if np.linalg.norm(t * dx) < tol * (1 + np.linalg.norm(x[idx])) or rms[-1] < 1e-15:
+            converged = True
+            break
+    return x, it, rms, np.array(steps), converged
+
+
+def _moved(x, idx, d):
+    """x with x[idx] += d (a copy)."""
+    y = x.copy()
+    y[idx] += d
+    return y
+
+
 def calibrate(robot: Robot, points, a0=None, c0=None, priority=None, include_gains=True, solver="gecaro",
               max_iter: int = 30, tol: float = 1e-14, n_configs: int = 40, seed: int = 0) -> Calibration:
     """Identify the base parameters of a method from generated/measured `points` (a `Points`).
 
     solver "gecaro": iterated linearised least squares on W_b (seed 001 eq 9-10: dx = -W_b^+ r,
-    W_b and r updated each iteration); "lm": Levenberg-Marquardt (`jaxcal.fit.lm`) on the same base
-    columns. Parameters outside the base set stay at a0. c0: start for the plane coefficients
-    (unknown-plane methods; default the points' plane). The base set comes from `identifiable`
-    at a0 (n_configs generated points, seed): measured points satisfy the constraint only for
-    the true robot, so a W built on them at a0 would over-count (seed 001 §3.2, App. III)."""
+    W_b and r updated each iteration) with a step-length control: the step is halved until the
+    sum of squared residuals falls (Armijo rule, `step_length`); "lm": Levenberg-Marquardt
+    (`jaxcal.fit.lm`) on the same base columns. Parameters outside the base set stay at a0.
+    c0: start for the method's unknowns; by default the nearest plane to the tool points of the
+    model at a0 for plane1_unknown / plane2_unknown (seed 001 §3.3.1), the points' known plane for
+    plane1_known / plane2_known. The base set comes from `identifiable` at a0 (n_configs generated
+    points, seed): measured points satisfy the constraint only for the true robot, so a W built on
+    them at a0 would over-count (seed 001 §3.2, App. III)."""
     from jaxcal.fit.methods import stacked_residual
 
+    if solver not in ("gecaro", "lm"):
+        raise ValueError(f"unknown solver {solver!r}; expected 'gecaro' or 'lm'")
     method = points.method
     t0 = time.perf_counter()
     a0 = np.asarray(robot.nominal_np if a0 is None else a0, float)
-    c0 = np.asarray(points.plane if c0 is None else c0, float)
+    c0 = start_unknowns(robot, points, a0, c0)
     nr = robot.n_params
     Qi, Qj, Y = jnp.asarray(points.Qi), jnp.asarray(points.Qj), jnp.asarray(points.Y)
     x = np.concatenate([a0, c0])
     ident = identifiable(robot, method, n_configs=n_configs, seed=seed, priority=priority,
                          include_gains=include_gains, a=a0, plane=c0 if method in PLANE_METHODS else None)
     idx = np.sort(ident.basis.independent)
-    res = lambda x: stacked_residual(robot, method, x[:nr], x[nr:], Qi, Qj, Y)  # noqa: E731
-    rms = [float(np.sqrt(np.mean(np.asarray(res(jnp.asarray(x))) ** 2)))]
-    converged, it = False, 0
+    res = lambda x: stacked_residual(robot, method, jnp.asarray(x[:nr]), jnp.asarray(x[nr:]), Qi, Qj, Y)  # noqa: E731
+    steps = np.zeros(0)
     if solver == "gecaro":
-        for it in range(1, max_iter + 1):
-            xj = jnp.asarray(x)
-            r = np.asarray(res(xj))
-            Wb = np.asarray(observation_matrix(robot, method, xj[:nr], xj[nr:], Qi, Qj, Y))[:, idx]
-            dx = -np.linalg.lstsq(Wb, r, rcond=None)[0]
-            x[idx] += dx
-            rms.append(float(np.sqrt(np.mean(np.asarray(res(jnp.asarray(x))) ** 2))))
-            if np.linalg.norm(dx) < tol * (1 + np.linalg.norm(x[idx])) or rms[-1] < 1e-15:
-                converged = True
-                break
-    elif solver == "lm":
-        xb, steps, ok = _lm_on_base(jnp.asarray(x), jnp.asarray(idx), Qi, Qj, Y, robot=robot, method=method, nr=nr, max_steps=200)
-        x[idx] = np.asarray(xb)
-        it, converged = int(steps), bool(ok)
-        rms.append(float(np.sqrt(np.mean(np.asarray(res(jnp.asarray(x))) ** 2))))
+        jac = lambda x: observation_matrix(robot, method, jnp.asarray(x[:nr]), jnp.asarray(x[nr:]), Qi, Qj, Y)  # noqa: E731
+        x, it, rms, steps, converged = _iterated_least_squares(res, jac, x, idx, max_iter, tol)
     else:
-        raise ValueError(f"unknown solver {solver!r}; expected 'gecaro' or 'lm'")
+        rms = [float(np.sqrt(np.mean(np.asarray(res(x)) ** 2)))]
+        xb, n_steps, ok = _lm_on_base(jnp.asarray(x), jnp.asarray(idx), Qi, Qj, Y, robot=robot, method=method, nr=nr, max_steps=200)
+        x[idx] = np.asarray(xb)
+        it, converged = int(n_steps), bool(ok)
+        rms.append(float(np.sqrt(np.mean(np.asarray(res(x)) ** 2))))
     names = ident.all_names
-    return Calibration(x[:nr], x[nr:], tuple(names[i] for i in idx), it, np.array(rms), converged,
-                       time.perf_counter() - t0)
+    return Calibration(x[:nr], x[nr:], tuple(names[i] for i in idx), it, np.array(rms), bool(converged),
+                       time.perf_counter() - t0, c0, steps)

@@ -246,6 +246,41 @@ def exact_measurements(robot: Robot, method: str, a, Qi, Qj):
     return np.zeros(len(Qi))
 
 
+def nearest_plane(P) -> tuple[np.ndarray, np.ndarray]:
+    """Total-least-squares plane through points P (N, 3): (centroid, unit normal).
+
+    The normal is the right singular vector of the centred points with the smallest singular
+    value, so the plane minimises the sum of squared orthogonal distances."""
+    P = np.asarray(P, float).reshape(-1, 3)
+    if len(P) < 3:
+        raise ValueError(f"a plane needs at least 3 points, got {len(P)}")
+    centroid = P.mean(axis=0)
+    _, s, vt = np.linalg.svd(P - centroid, full_matrices=False)
+    if s[1] <= 1e-12 * max(s[0], 1e-300):
+        raise ValueError("the points are collinear: no unique nearest plane")
+    return centroid, vt[-1]
+
+
+def plane_coefficients(centroid, normal) -> np.ndarray:
+    """(a, b, c) of a x + b y + c z + 1 = 0 (seed 001 eq 13) for the plane through `centroid`
+    with `normal`; eq 13 cannot hold a plane through the world origin."""
+    offset = float(np.dot(normal, centroid))
+    if abs(offset) < 1e-9:
+        raise ValueError("the plane passes through the world origin: eq 13 (a x + b y + c z + 1 = 0) cannot express it")
+    return -np.asarray(normal, float) / offset
+
+
+def initial_plane(robot: Robot, method: str, a, Qi, Qj) -> np.ndarray:
+    """Start of an unknown plane (seed 001 §3.3.1): the nearest plane to the tool points that the
+    model at parameters a (the nominal robot) gives for the joint readings (both configurations of
+    each pair for plane2_unknown). Returned as the coefficients (a, b, c) of eq 13 for both methods,
+    as `Points.plane` holds a plane; for eq 16 only their direction, the plane's normal, counts."""
+    if method not in ("plane1_unknown", "plane2_unknown"):
+        raise ValueError(f"{method!r} has no unknown plane")
+    Q = jnp.asarray(Qi) if method == "plane1_unknown" else jnp.concatenate([jnp.asarray(Qi), jnp.asarray(Qj)])
+    return plane_coefficients(*nearest_plane(np.asarray(_tool(robot, jnp.asarray(a), Q)[1])))
+
+
 def method_unknowns(method: str, plane) -> np.ndarray:
     """Initial/known values of the method's own unknowns c (the plane coefficients or normal)."""
     return np.asarray(plane, float) if method in PLANE_METHODS else np.zeros(0)

@@ -20,6 +20,11 @@ mdh` keeps the seed 001 layout above (Khalil-Kleinfinger letters, sigma column);
 and no `convention` is read that way too. The UR ROS driver's kinematics YAML (`kinematics:` or
 `dh_parameters:`) is recognised by its keys: see `jaxcal.robots.ur`.
 
+In the seed 001 layout, `coupling: {Cm: [[...]], Cj: [[...]]}` gives the (n x n) motor and joint
+coupling matrices of seed 001 eq 4, q = Cj diag(K) Cm qm + Offset (n moving frames, sigma 0 or 1, in
+frame order; either may be left out: the identity). The offsets are the theta (sigma 0) / r (sigma 1)
+column and the gains the K column.
+
 Optional keys: name, home, q_min, q_max, joint_names, actuated (mcpc), tip (mcpc), closure_start (mcpc:
 the free-joint start of the closure, see docs/closure.md). Errors name
 the file, the row and the field. A key given twice, a top-level key that looks like a misspelt known
@@ -122,6 +127,31 @@ def _convention(doc, path) -> str:
     return conv
 
 
+def _mdh_coupling(doc, path, n: int) -> dict:
+    """Cm and Cj of the seed 001 layout's `coupling` mapping as `mdh_robot` keywords."""
+    spec = doc.get("coupling")
+    if spec is None:
+        return {}
+    if not isinstance(spec, dict) or not spec or set(spec) - {"Cm", "Cj"}:
+        raise RobotFileError(f"{path}: field 'coupling' (seed 001 layout) must be a mapping with keys Cm and/or Cj, "
+                             f"each an {n} x {n} matrix (one row and column per moving frame)")
+    out = {}
+    for key, kw in (("Cm", "coupling_motor"), ("Cj", "coupling_joint")):
+        if key not in spec:
+            continue
+        rows = spec[key]
+        if not isinstance(rows, list) or len(rows) != n or not all(isinstance(r, list) and len(r) == n for r in rows):
+            raise RobotFileError(f"{path}, field 'coupling', {key}: expected an {n} x {n} matrix (list of {n} rows of {n} numbers)")
+        try:
+            C = np.array(rows, dtype=float)
+        except (TypeError, ValueError):
+            raise RobotFileError(f"{path}, field 'coupling', {key}: not a matrix of numbers: {rows!r}") from None
+        if not np.all(np.isfinite(C)):
+            raise RobotFileError(f"{path}, field 'coupling', {key}: non-finite entry")
+        out[kw] = C
+    return out
+
+
 def robot_from_dict(doc: dict, path: str = "<dict>", lines=None):
     """Build a robot from a parsed YAML document (`lines`: the file line of each row of a DH table)."""
     if not isinstance(doc, dict):
@@ -159,7 +189,8 @@ def robot_from_dict(doc: dict, path: str = "<dict>", lines=None):
                 vals = [_number(v, path, j, f) for v, f in zip(row, _COLUMNS[conv])]
                 sigma = int(vals[0])
                 frames.append((sigma, vals[1] * ang, vals[2] * lng, vals[3] * ang, vals[4] * lng, vals[5] * ang, vals[6]))
-            return mdh_robot(name, frames, **common)
+            coupling = _mdh_coupling(doc, path, sum(f[0] in (0, 1) for f in frames))
+            return mdh_robot(name, frames, **common, **coupling)
         table = []
         for i, row in enumerate(rows, start=1):
             vals = [_number(v, path, i, f) for v, f in zip(row, _COLUMNS[conv])]
@@ -226,6 +257,10 @@ def robot_to_dict(robot, a=None) -> dict:
             al, d, th, r, be = (float(ext[i]) for i in b.rows)
             k = float(a[gains[b]]) if b in gains else 0.0
             rows.append([int(b.kind), al, d, th, r, be, k])
+        coupling = {key: np.asarray(C).tolist() for key, C in (("Cm", robot.coupling_motor), ("Cj", robot.coupling_joint))
+                    if C is not None}
+        if coupling:
+            doc["coupling"] = coupling
     else:
         pairs = getattr(robot.closure, "pairs", ())
         closures = {q: p for p, q, _ in pairs}  # closure column on the row that names its partner
