@@ -17,12 +17,13 @@ from jaxcal import (
 from jaxcal._setup import enable_compilation_cache
 from jaxcal.fit import DataError, Dataset, FitResult, identify, perturb, random_configurations, simulate, uncertainty
 from jaxcal.fit.identifiable import identifiable
+from jaxcal.fit.sessions import apply_to_session
 from jaxcal.forward import forward
 from jaxcal.kin import Pose, Robot
 from jaxcal.measure import make_device
 from jaxcal.robots.io import load_robot, save_robot
 
 __version__ = "0.1.0"
-__all__ = ["DataError", "Dataset", "FitResult", "Pose", "Robot", "enable_compilation_cache", "forward", "ga", "gap",
+__all__ = ["DataError", "Dataset", "FitResult", "Pose", "Robot", "apply_to_session", "enable_compilation_cache", "forward", "ga", "gap",
            "identifiable", "identify", "make_device", "load_robot", "measure", "perturb", "random_configurations", "realdata",
            "robots", "save_robot", "simulate", "uncertainty"]

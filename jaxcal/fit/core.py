@@ -530,35 +530,55 @@ def _unit_mistake(scale: float) -> str | None:
 
 
 def registered_frame(problem: Problem, a_full) -> np.ndarray | None:
-    """a_full with the device frame D (readings y = D^-1 p) set by rigid registration of the readings onto
-    the model's points p at a_full (marker offset as given). None when the device has no 6-D frame, its
-    readings carry no points, the frame is not free, or the points span less than a plane.
+    """a_full with each device frame D (readings y = D^-1 p; one per session, `Device.frame_blocks`) set by rigid
+    registration of its samples' readings onto the model's points p at a_full (marker offset as given). None when
+    the device has no free 6-D frame, its readings carry no points, or no frame's points span a plane.
     Raises DataError when the readings fit the model only after scaling by 1/1000 (mm), 1/100 (cm) or 1/25.4."""
     device, robot = problem.device, problem.robot
-    idx = device.frame_index
-    if idx is None or not np.all(problem.free[robot.n_params + np.asarray(idx)]):
-        return None
     used = problem.used
-    Y = device.points(problem.y[used])
-    if Y is None:
+    blocks = [(np.asarray(idx), mask[used]) for idx, mask in device.frame_blocks(problem.y)
+              if np.all(problem.free[robot.n_params + np.asarray(idx)])]
+    Y_all = device.points(problem.y[used])
+    if not blocks or Y_all is None:
         return None
     x = np.array(a_full, float)
-    x[robot.n_params + np.asarray(idx)] = 0.0  # identity frame: the readings are then the model's points
+    for idx, _ in blocks:
+        x[robot.n_params + idx] = 0.0  # identity frames: the readings are then the model's points
     pred = np.asarray(readings(robot, device, jnp.asarray(x), jnp.asarray(problem.q[used])))
-    P, Y = device.points(pred).reshape(-1, 3), Y.reshape(-1, 3)
+    P_all = device.predicted_points(pred)
+    registered = False
+    for idx, mask in blocks:
+        frame = _registration(device, P_all[mask].reshape(-1, 3), Y_all[mask].reshape(-1, 3))
+        if frame is not None:
+            x[robot.n_params + idx] = frame
+            registered = True
+    return x if registered else None
+
+
+UNIT_FIT = 0.2  # a scaled registration names a unit mistake only when its residual is below this share of the spread
+
+
+def _explains(P, P_fit) -> bool:
+    """The registered points P_fit explain P: RMS misfit below UNIT_FIT x the RMS spread of P. Readings taken in
+    several frames (sessions mixed up) also register best at a small scale, but do not fit."""
+    spread = np.sqrt(np.mean(np.sum((P - P.mean(0)) ** 2, axis=1)))
+    return bool(np.sqrt(np.mean(np.sum((P - P_fit) ** 2, axis=1))) < UNIT_FIT * spread)
+
+
+def _registration(device: Device, P, Y) -> np.ndarray | None:
+    """(x, y, z, rx, ry, rz) of the frame D with P = D Y (rigid registration), or None for fewer than 3 finite
+    points or points on a line; DataError when a similarity fits only with a length-unit scale."""
     ok = np.all(np.isfinite(P), axis=1) & np.all(np.isfinite(Y), axis=1)
     P, Y = P[ok], Y[ok]
     if len(P) < 3 or np.linalg.svd(Y - Y.mean(0), compute_uv=False)[1] < 1e-9 * max(np.ptp(Y), 1e-300):
         return None
-    s, R, _ = similarity_registration(P, Y)
+    s, R, t = similarity_registration(P, Y)
     unit = _unit_mistake(s)
-    if unit is not None:
+    if unit is not None and _explains(P, s * Y @ R.T + t):
         raise DataError(f"the {device.kind} readings fit the robot only after scaling them by {s:.4g}: they look like {unit}, "
                         "not metres; give the unit (Dataset.from_csv(..., length_unit=...) or a '# units:' line)")
     R, t = rigid_registration(P, Y)
-    x[robot.n_params + np.asarray(idx[:3])] = t
-    x[robot.n_params + np.asarray(idx[3:])] = np.asarray(log_so3(jnp.asarray(R)))
-    return x
+    return np.concatenate([t, np.asarray(log_so3(jnp.asarray(R)))])
 
 
 @dataclasses.dataclass(frozen=True)

@@ -31,8 +31,18 @@ from jaxcal.fit.bias import (
 )
 from jaxcal.fit.data import Dataset
 from jaxcal.fit.health import Health, assess
+from jaxcal.fit.sessions import (
+    INCONSISTENT,
+    readings_for,
+    session_dataset,
+    session_device_params,
+    session_labels,
+    session_summary,
+    summary_lines,
+)
 from jaxcal.kin.model import Robot
 from jaxcal.measure.devices import Device
+from jaxcal.measure.sessions import Sessions
 from jaxcal.names import check_names
 
 SOLVERS = tuple(core.SOLVERS)
@@ -159,7 +169,8 @@ class FitResult:
     def errors(self, data: Dataset):
         """Per-sample (position m, orientation rad) errors of this model on a dataset."""
         w = residual_weights(self.device, 1.0, 1.0)
-        r = residuals(self.robot, self.device, self.a_full, jnp.asarray(data.q), jnp.asarray(data.y), w)
+        y = readings_for(self.device, data)
+        r = residuals(self.robot, self.device, self.a_full, jnp.asarray(data.q), jnp.asarray(y), w)
         pe, oe = self.device.split_errors(r)
         return (None if pe is None else np.asarray(pe)), (None if oe is None else np.asarray(oe))
 
@@ -185,6 +196,11 @@ class FitResult:
             lines.append(line + "  " + self.status(n))
         return "\n".join(lines)
 
+    def _samples_kind(self) -> str:
+        if isinstance(self.device, Sessions):
+            return f"{self.device.inner.kind} ({self.device.sessions} sessions)"
+        return self.device.kind
+
     def report(self) -> str:
         o = ""
         if self.orientation_rms_after is not None and self.rms_after == self.rms_after:
@@ -192,7 +208,7 @@ class FitResult:
         unit = self.device.error_unit
         lines = ([] if self.health is None else self.health.lines()) + [
             f"identified {len(self.estimated)} parameters of {self.robot.name} from "
-            f"{self.info.get('n_samples', '?')} {self.device.kind} samples",
+            f"{self.info.get('n_samples', '?')} {self._samples_kind()} samples",
             f"RMS error {self.rms_before:.4g} -> {self.rms_after:.4g} {unit} (nominal, frames fitted -> calibrated){o}",
             f"iterations {self.iterations}, converged {self.converged}, "
             f"compile {self.timings.get('compile_s', 0):.2f} s, run {self.timings.get('run_s', 0) * 1e3:.1f} ms",
@@ -210,6 +226,7 @@ class FitResult:
         if weak:
             lines.append(f"poorly determined by these data (standard error above 1 mm, 1 mrad or 0.1 of a gain; "
                          f"their values are not trustworthy): {', '.join(weak)}")
+        lines += summary_lines(self.info.get("sessions", []), unit)
         p = self.info.get("polish", {})
         if p.get("accepted"):
             lines.append(f"final all-parameter stage kept: cost {p['cost_before']:.4g} -> {p['cost_after']:.4g} "
@@ -297,6 +314,7 @@ def identify(
     base_tol: float | None = None,
     outliers: str = "flag",
     progress=None,
+    session_params=("dev",),
     _unclosed_excluded: tuple = (),
 ) -> FitResult:
     """Identify robot and device parameters from a dataset, through the calibration core (`jaxcal.fit.core`).
@@ -328,6 +346,10 @@ def identify(
     outliers: "flag" (default: samples failing the robust test are listed in `health` and warned about) or
     "exclude" (they are also left out, weight 0, and the fit is repeated once without them).
     progress: called with a short text as each stage begins (`core.calibrate`; the CLI's progress display).
+    session_params: when the data carry a "session" covariate with two or more labels (a `session` column), the
+    device parameters with these prefixes get one copy per session (`measure.sessions`: default the device
+    frame, "dev"; the marker and the robot are shared); () keeps one frame for all. `info["sessions"]` and the
+    report then say how consistent the sessions are (`fit.sessions.session_summary`).
 
     Closed mechanisms: samples that do not close at the start are left out; samples that do not close at the
     solution are left out too and the fit is repeated once without them (`info["unclosed_at_solution"]`); both
@@ -342,6 +364,10 @@ def identify(
     if outliers not in ("flag", "exclude"):
         raise ValueError(f"outliers must be 'flag' or 'exclude', got {outliers!r}")
     t_start = time.perf_counter()
+    if session_params and not isinstance(data.device, Sessions) and len(session_labels(data)) > 1:
+        data = session_dataset(data, session_params)  # one device frame per session
+        if device_params is not None:
+            device_params = session_device_params(data.device, device_params)
     device = data.device
     nr = robot.n_params
     if data.q.shape[1] != robot.n_inputs:
@@ -375,7 +401,7 @@ def identify(
             kw = dict(free=free, known=known, a0=a0, device_params=device_params, solver=solver, base=base, bias=bias,
                       bounds=bounds, multistart=multistart, seed=seed, sigma_position=sigma_position,
                       sigma_orientation=sigma_orientation, max_steps=max_steps, rtol=rtol, atol=atol, history=history,
-                      base_tol=base_tol, outliers=outliers, progress=progress)
+                      base_tol=base_tol, outliers=outliers, progress=progress, session_params=session_params)
             refit = identify(robot, full_data, sample_weights=sw, _unclosed_excluded=at_solution, **kw)
             refit.info["unclosed_at_solution"] = at_solution
             return refit
@@ -385,7 +411,7 @@ def identify(
         kw = dict(free=free, known=known, a0=a0, device_params=device_params, solver=solver, base=base, bias=bias,
                   bounds=bounds, multistart=multistart, seed=seed, sigma_position=sigma_position,
                   sigma_orientation=sigma_orientation, max_steps=max_steps, rtol=rtol, atol=atol, history=history,
-                  base_tol=base_tol, progress=progress)
+                  base_tol=base_tol, progress=progress, session_params=session_params)
         refit = identify(robot, full_data, sample_weights=sw, outliers="flag", _unclosed_excluded=_unclosed_excluded, **kw)
         refit.info["excluded_outliers"] = health.outliers
         return refit
@@ -413,7 +439,7 @@ def identify(
     pick = (lambda p, o: p if p is not None else o)
     a_full = jnp.asarray(cal.x)
     to_names = lambda idx: tuple(names[i] for i in idx)  # noqa: E731
-    return FitResult(
+    fit = FitResult(
         robot=robot, device=device, a=a_full[:nr], device_params=a_full[nr:], names=names,
         rms_before=pick(before_p, before_o), rms_after=pick(after_p, after_o),
         orientation_rms_before=before_o if before_p is not None else None,
@@ -431,6 +457,21 @@ def identify(
               "polished_std_errors": polished_se,
               **bias_info},
     )
+    if isinstance(device, Sessions):
+        _add_session_summary(fit, data)
+    return fit
+
+
+def _add_session_summary(fit: FitResult, data: Dataset) -> None:
+    """fit.info["sessions"] (`fit.sessions.session_summary`), and a health warning naming the sessions whose RMS
+    error is far above the others' (the instrument moved during the session, or a different set-up)."""
+    rows = session_summary(fit, data)
+    fit.info["sessions"] = rows
+    bad = [r["session"] for r in rows if r["inconsistent"]]
+    if bad and fit.health is not None:
+        msg = (f"session(s) {', '.join(bad)}: RMS error above {INCONSISTENT:g}x the other sessions' median (instrument "
+               "moved during the session, or another set-up)")
+        fit.health = dataclasses.replace(fit.health, warnings=fit.health.warnings + (msg,))
 
 
 def _covariance(J, mu: float, scale, r, readings: int) -> tuple[np.ndarray | None, float]:

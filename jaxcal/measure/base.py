@@ -206,3 +206,14 @@ class Device(abc.ABC):
         """The positional part of readings y (N, *reading_shape) in the device frame, (N, K, 3);
         None for a device whose readings hold no point."""
         return None
+
+    def predicted_points(self, pred):
+        """`points` of the model's predicted readings (`jaxcal.fit.core.readings`); the same as `points` unless a
+        prediction is laid out unlike a measured reading (`measure.sessions`)."""
+        return self.points(pred)
+
+    def frame_blocks(self, y):
+        """[(indices in d of a 6-D device frame, the samples of readings y (N, ...) taken in it)]: the frames the
+        start registers onto the readings (`jaxcal.fit.core.registered_frame`); one per session for
+        `measure.sessions.Sessions`."""
+        return [] if self.frame_index is None else [(self.frame_index, np.ones(len(y), bool))]
