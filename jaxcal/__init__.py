@@ -24,6 +24,6 @@ from jaxcal.measure import make_device
 from jaxcal.robots.io import load_robot, save_robot
 
 __version__ = "0.1.0"
-__all__ = ["DataError", "Dataset", "FitResult", "Pose", "Robot", "apply_to_session", "enable_compilation_cache", "forward", "ga", "gap",
-           "identifiable", "identify", "make_device", "load_robot", "measure", "perturb", "random_configurations", "realdata",
-           "robots", "save_robot", "simulate", "uncertainty"]
+__all__ = ["DataError", "Dataset", "FitResult", "Pose", "Robot", "apply_to_session", "enable_compilation_cache", "forward",
+           "ga", "gap", "identifiable", "identify", "make_device", "load_robot", "measure", "perturb", "random_configurations",
+           "realdata", "robots", "save_robot", "simulate", "uncertainty"]

@@ -105,7 +105,7 @@ def _warn(text) -> None:
 # -- calibrate ---------------------------------------------------------------------------------------
 DEFAULTS = {"holdout": 0.25, "seed": 0, "solver": "lm", "out": "calib-output", "sigma_position": 1e-3,
             "sigma_orientation": 1e-3, "max_steps": 200}
-JOB_KEYS = ("robot", "data", "base", "tip", "out", "device", "marker", "joints", "length_unit", "angle_unit", "holdout",
+JOB_KEYS = ("robot", "data", "columns", "base", "tip", "out", "device", "marker", "joints", "length_unit", "angle_unit", "holdout",
             "seed", "solver", "free", "known", "sigma_position", "sigma_orientation", "max_steps", "rtol", "atol")
 
 
@@ -149,18 +149,40 @@ def job_options(args) -> dict:
 OUTPUTS = ("results.json", "report.md", "report.html", "errors_per_pose.png", "error_map.png", "convergence.png")
 
 
+def is_table(path: str, columns) -> bool:
+    """Whether a data file is read through `Dataset.from_table` (a workbook, or any file given a column map)
+    rather than `Dataset.from_csv`."""
+    from jaxcal.fit.tables import WORKBOOK_SUFFIXES
+
+    return columns is not None or str(path).lower().endswith(WORKBOOK_SUFFIXES)
+
+
+def load_data(path, robot, columns=None, joints=None, device=None, marker=None, length_unit=None, angle_unit=None,
+              limits=None):
+    """A measurement file for `robot`: a CSV (`Dataset.from_csv`), or an .xlsx workbook or a text export with a
+    column map (`--columns`, `Dataset.from_table`); joints default to the robot's, prismatic joints are the robot's."""
+    import jaxcal as jc
+    from jaxcal.config import ConfigError
+
+    joints = joints or robot.joint_names
+    if not is_table(path, columns):
+        return jc.Dataset.from_csv(path, joints=joints, device=device, marker=marker, length_unit=length_unit,
+                                   angle_unit=angle_unit, prismatic=prismatic_joints(robot), limits=limits)
+    if marker is not None:
+        raise ConfigError(f"{path}: --marker / marker applies to CSV files; name the marker's columns in the column map")
+    return jc.Dataset.from_table(path, columns=columns, joints=joints, device=device, length_unit=length_unit,
+                                 angle_unit=angle_unit, prismatic=prismatic_joints(robot), limits=limits)
+
+
 def load_job_data(job, robot):
     """The job's dataset, checked against the robot (joint columns, units against its limits); returns
     (data, warnings): the data warnings (unit doubts, constant joint columns) as strings."""
-    import jaxcal as jc
     from jaxcal.fit.csvfile import DataWarning, constant_columns, joint_limits
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", DataWarning)
-        data = jc.Dataset.from_csv(job["data"], joints=job.get("joints") or robot.joint_names, device=job.get("device"),
-                                   marker=job.get("marker"), length_unit=job.get("length_unit"),
-                                   angle_unit=job.get("angle_unit"), prismatic=prismatic_joints(robot),
-                                   limits=joint_limits(robot))
+        data = load_data(job["data"], robot, job.get("columns"), job.get("joints"), job.get("device"), job.get("marker"),
+                         job.get("length_unit"), job.get("angle_unit"), joint_limits(robot))
     found = [str(w.message) for w in caught if issubclass(w.category, DataWarning)]
     for name in constant_columns(data.q, list(data.joint_names or robot.joint_names)):
         found.append(f"{data.source}: joint column {name!r} has the same value in every sample: the data cannot identify "
@@ -199,7 +221,7 @@ def _calibrate(args) -> int:
 
     try:
         job = job_options(args)
-        inputs = [job["robot"], job["data"], args.config]
+        inputs = [job["robot"], job["data"], args.config, job.get("columns")]
         out = job["out"]
         for name in OUTPUTS:
             check_not_input(os.path.join(out, name), inputs)
@@ -361,9 +383,9 @@ def _diagnose(args) -> int:
     try:
         check_writable_dir(args.out)
         robot = load_robot_arg(args.robot, args.base, args.tip)
-        data = jc.Dataset.from_csv(args.data, joints=robot.joint_names, device=args.device, marker=args.marker,
-                                   length_unit=args.length_unit, angle_unit=args.angle_unit, prismatic=prismatic_joints(robot))
-        check_not_input(os.path.join(args.out, "diagnosis.json"), [args.robot, args.data])
+        data = load_data(args.data, robot, args.columns, device=args.device, marker=args.marker,
+                         length_unit=args.length_unit, angle_unit=args.angle_unit)
+        check_not_input(os.path.join(args.out, "diagnosis.json"), [args.robot, args.data, args.columns])
         with _progress(not args.quiet) as prog, _stage(prog, f"diagnosing the sim-to-real gap of {robot.name}"):
             d = jc.gap.diagnose(robot, data, folds=args.folds, seed=args.seed, max_steps=args.max_steps, solver=args.solver,
                                 sigma_position=args.sigma_position, sigma_orientation=args.sigma_orientation,
@@ -380,7 +402,6 @@ def _diagnose(args) -> int:
 
 # -- cv -----------------------------------------------------------------------------------------------------
 def _cv(args) -> int:
-    import jaxcal as jc
     from jaxcal.fit.cv import cross_validate
     from jaxcal.io_atomic import check_not_input, check_output_file, write_json_atomic
 
@@ -388,10 +409,10 @@ def _cv(args) -> int:
         if args.json:
             check_output_file(args.json, "--json file")
         robot = load_robot_arg(args.robot, args.base, args.tip)
-        data = jc.Dataset.from_csv(args.data, joints=robot.joint_names, device=args.device, marker=args.marker,
-                                   length_unit=args.length_unit, angle_unit=args.angle_unit, prismatic=prismatic_joints(robot))
+        data = load_data(args.data, robot, args.columns, device=args.device, marker=args.marker,
+                         length_unit=args.length_unit, angle_unit=args.angle_unit)
         if args.json:
-            check_not_input(args.json, [args.robot, args.data])
+            check_not_input(args.json, [args.robot, args.data, args.columns])
         with _progress(not args.quiet) as prog, _stage(prog, f"{args.folds}-fold cross-validation of {robot.name}"):
             res = cross_validate(robot, data, folds=args.folds, seed=args.seed, sigma_position=args.sigma_position,
                                  sigma_orientation=args.sigma_orientation, max_steps=args.max_steps, solver=args.solver,
@@ -508,6 +529,8 @@ def _solver_args(p, solver_default="lm", max_steps_default=200, max_steps_help="
 
 
 def _data_args(p):
+    p.add_argument("--columns", metavar="MAP.yaml", help="column map of an .xlsx workbook or a tracker/mocap text export: "
+                   "which column is which quantity, units, angle convention (docs/file-formats.md)")
     p.add_argument("--device", choices=("position", "pose"), help="reading type (default: from the CSV columns)")
     p.add_argument("--marker", help="marker number when the CSV has x1.., x2.. columns (default: the first)")
     p.add_argument("--length-unit", dest="length_unit", choices=("m", "mm"), help="unit of x, y, z (default: header line, else m)")
@@ -570,7 +593,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("calibrate", help="identify a robot from a measurement CSV; write results, report, calibrated robot")
     c.add_argument("robot", nargs="?", help="built-in robot name, robot YAML or URDF (or 'robot:' in --config)")
-    c.add_argument("data", nargs="?", help="measurement CSV (docs/file-formats.md) (or 'data:' in --config)")
+    c.add_argument("data", nargs="?", help="measurement CSV, .xlsx workbook or text export (docs/file-formats.md) "
+                   "(or 'data:' in --config)")
     c.add_argument("--config", help="YAML or TOML job file (keys as these options; the options given here win)")
     c.add_argument("--base", help="URDF: first link of the chain")
     c.add_argument("--tip", help="URDF: last link of the chain")
@@ -621,7 +645,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     d = sub.add_parser("diagnose", help="diagnose the sim-to-real gap left after calibration (jaxcal.gap)")
     _robot_args(d)
-    d.add_argument("data", help="measurement CSV")
+    d.add_argument("data", help="measurement CSV, .xlsx workbook or text export")
     d.add_argument("--out", default="diagnosis-output", help="output folder (default diagnosis-output)")
     _data_args(d)
     d.add_argument("--folds", type=folds_int, default=5, help="cross-validation folds (default 5)")
@@ -635,7 +659,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     v = sub.add_parser("cv", help="k-fold cross-validation of the calibration of a robot on a measurement CSV")
     _robot_args(v)
-    v.add_argument("data", help="measurement CSV")
+    v.add_argument("data", help="measurement CSV, .xlsx workbook or text export")
     _data_args(v)
     v.add_argument("--folds", type=folds_int, default=5, help="folds (default 5; repeated poses stay in one fold)")
     v.add_argument("--seed", type=int, default=0, help="seed of the fold split (default 0)")

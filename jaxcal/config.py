@@ -57,7 +57,8 @@ SCHEMA = {
     "robot": (_string, "a built-in robot name or a path"),
     "base": (_string, "a link name"),
     "tip": (_string, "a link name"),
-    "data": (_string, "a path to a CSV file"),
+    "data": (_string, "a path to a CSV or .xlsx file"),
+    "columns": (_string, "a path to a column map (YAML, docs/file-formats.md)"),
     "out": (_string, "a folder path"),
     "device": (lambda v: v in ("position", "pose"), "'position' or 'pose'"),
     "marker": (lambda v: (isinstance(v, int) and not isinstance(v, bool) and v >= 1) or _string(v), "a marker number >= 1"),
@@ -74,7 +75,7 @@ SCHEMA = {
     "rtol": (lambda v: _number(v) and v > 0, "a positive number"),
     "atol": (lambda v: _number(v) and v > 0, "a positive number"),
 }
-PATH_KEYS = ("robot", "data", "out")
+PATH_KEYS = ("robot", "data", "columns", "out")
 UNITS = {"length": ("m", "mm"), "angle": ("rad", "deg")}
 
 

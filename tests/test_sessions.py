@@ -157,3 +157,26 @@ def test_session_labels_are_checked():
         Sessions.build(jc.make_device("position"), ("a b", "a_b"))
     with pytest.raises(ValueError, match=r"\['c'\]"):
         readings_for(dev, jc.Dataset(np.zeros((2, 6)), np.zeros((2, 3)), "position", covariates={"session": ["a", "c"]}))
+
+
+def test_a_session_column_in_the_csv_calibrates_from_the_command_line(tmp_path):
+    """`jaxcal calibrate` on a CSV with a `session` column (two trackers 1-2 m apart, mm): one frame per session,
+    exit 0, held-out error at the noise, and the report lists the sessions."""
+    import json
+
+    from jaxcal.cli import main
+    from jaxcal.fit.csvfile import prismatic_joints
+
+    rb = jc.robots.get("stanford")
+    rng = np.random.default_rng(11)
+    a_true = jc.perturb(rb, 1e-3, seed=12)
+    data = _dataset([_session(rb, a_true, _frame(rng), MARKER, 40, 200 + 10 * s, f"cell-{s}") for s in range(2)])
+    csv = tmp_path / "two_days.csv"
+    data.to_csv(csv, length_unit="mm", joints=rb.joint_names, prismatic=prismatic_joints(rb))
+    back = jc.Dataset.from_csv(csv)
+    assert list(back.covariates["session"][[0, -1]]) == ["cell-0", "cell-1"] and np.abs(back.y - data.y).max() < 1e-12
+    out = tmp_path / "out"
+    assert main(["calibrate", "stanford", str(csv), "--out", str(out), "--sigma-position", str(SIGMA), "-q"]) == 0
+    res = json.load(open(out / "results.json"))
+    assert res["rms"]["heldout"]["position_mm"]["after"] < 1.5 * SIGMA * np.sqrt(3) * 1e3
+    assert "sessions: 2 (one device frame each)" in (out / "report.md").read_text()

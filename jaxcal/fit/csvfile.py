@@ -66,6 +66,12 @@ def joint_limits(robot) -> dict:
     return {n: (float(a), float(b)) for n, a, b in zip(robot.joint_names, lo, hi) if np.isfinite(a) and np.isfinite(b) and a < b}
 
 
+def at(path: str, line) -> str:
+    """Where a row is, for messages: `path, line 7` for a text line number, `path, <label>` for a labelled row
+    (a spreadsheet's `row 17`)."""
+    return f"{path}, {line}" if isinstance(line, str) else f"{path}, line {line}"
+
+
 class DataError(ValueError):
     """Bad input data; the message names the file, row, column or sample."""
 
@@ -87,6 +93,12 @@ class Table:
     values: np.ndarray  # (N, n_columns) float
     lines: np.ndarray  # (N,) 1-based line numbers
     units: dict  # from the header comment: {"length": ..., "angle": ...}
+    text: tuple = ()  # (N,) the rows' fields as read, for text columns (a session label)
+
+    def column_text(self, name: str) -> np.ndarray:
+        """The raw text of one column, (N,) strings."""
+        c = self.header.index(name)
+        return np.array([row[c] for row in self.text], dtype=str)
 
 
 def _header_units(comment: str, path: str, lineno: int) -> dict:
@@ -180,7 +192,7 @@ def read_table(path: str, delimiter: str = ",", needed=None, header_only: bool =
             if not np.isfinite(v):
                 raise DataError(f"{path}, line {lineno}, column {name!r}: non-finite value {text!r}")
             values[r, c] = v
-    return Table(path, header, values, np.asarray(lines), units)
+    return Table(path, header, values, np.asarray(lines), units, tuple(rows))
 
 
 def resolve_unit(kind: str, argument, from_file, path: str) -> str:
@@ -193,6 +205,9 @@ def resolve_unit(kind: str, argument, from_file, path: str) -> str:
     return argument or from_file or ("m" if kind == "length" else "rad")
 
 
+SESSION_COLUMN = "session"  # a column of this name (any case) labels each row's measurement session
+
+
 @dataclasses.dataclass
 class Layout:
     """Which columns hold what."""
@@ -203,6 +218,7 @@ class Layout:
     orientation_columns: list[str]
     covariates: dict  # canonical name -> column
     markers: list[str]  # marker ids found ("" for plain x, y, z)
+    session: str | None = None  # the column of text session labels (`measure.sessions`), if any
 
 
 def _markers(header):
@@ -258,9 +274,11 @@ def find_layout(header, path, joints=None, position_columns=None, marker=None, c
         if h.lower() in COVARIATE_ALIASES:
             cov[COVARIATE_ALIASES[h.lower()]] = h
     for c in covariates:
-        cov[COVARIATE_ALIASES.get(c.lower(), c)] = c
+        if c.lower() != SESSION_COLUMN:  # text labels, read apart (Layout.session)
+            cov[COVARIATE_ALIASES.get(c.lower(), c)] = c
+    session = next((h for h in header if h.lower() == SESSION_COLUMN), None)
     if joints is None:
-        used = set(position) | set(ocols) | set(cov.values())
+        used = set(position) | set(ocols) | set(cov.values()) | {session}
         joints = [h for h in header if h not in used and not _is_measurement(h)]
         if not joints:
             raise DataError(f"{path}: no joint columns found; header has {header}")
@@ -272,7 +290,7 @@ def find_layout(header, path, joints=None, position_columns=None, marker=None, c
         near = {m: closest(m, [h for h in header if h not in need], n=1) for m in missing}
         hint = "; ".join(f"{m!r} misspelt as {near[m][0]!r}?" for m in missing if near[m])
         raise DataError(f"{path}: missing column(s) {missing}; header has {header}" + (f" ({hint})" if hint else ""))
-    return Layout(list(joints), position, kind, ocols, cov, markers)
+    return Layout(list(joints), position, kind, ocols, cov, markers, session)
 
 
 def rotations_from_columns(kind, block, lines, path, angle_scale):
@@ -284,7 +302,7 @@ def rotations_from_columns(kind, block, lines, path, angle_scale):
         big = np.abs(rpy).max(axis=1) > MAX_ANGLE_RAD
         if big.any():
             i = int(np.flatnonzero(big)[0])
-            raise DataError(f"{path}, line {lines[i]}: roll/pitch/yaw angle of {np.abs(rpy[i]).max():.3g} rad: "
+            raise DataError(f"{at(path, lines[i])}: roll/pitch/yaw angle of {np.abs(rpy[i]).max():.3g} rad: "
                             "degrees given as radians? state the angle unit")
         return Rotation.from_euler("xyz", rpy).as_matrix()  # lower case: fixed axes, R = Rz Ry Rx
     if kind == "rotvec":
@@ -292,7 +310,7 @@ def rotations_from_columns(kind, block, lines, path, angle_scale):
         big = np.linalg.norm(rv, axis=1) > 2 * MAX_ANGLE_RAD
         if big.any():
             i = int(np.flatnonzero(big)[0])
-            raise DataError(f"{path}, line {lines[i]}: rotation vector of norm {np.linalg.norm(rv[i]):.3g} rad: "
+            raise DataError(f"{at(path, lines[i])}: rotation vector of norm {np.linalg.norm(rv[i]):.3g} rad: "
                             "degrees given as radians? state the angle unit")
         return Rotation.from_rotvec(rv).as_matrix()
     if kind == "quaternion":
@@ -300,7 +318,7 @@ def rotations_from_columns(kind, block, lines, path, angle_scale):
         bad = np.abs(norm - 1.0) > 1e-3
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise DataError(f"{path}, line {lines[i]}: quaternion (qw, qx, qy, qz) has norm {norm[i]:.6g}, expected 1")
+            raise DataError(f"{at(path, lines[i])}: quaternion (qw, qx, qy, qz) has norm {norm[i]:.6g}, expected 1")
         return Rotation.from_quat(block[:, [1, 2, 3, 0]]).as_matrix()
     R = block.reshape(-1, 3, 3)
     err = np.linalg.norm(np.swapaxes(R, 1, 2) @ R - np.eye(3), axis=(1, 2))
@@ -308,7 +326,7 @@ def rotations_from_columns(kind, block, lines, path, angle_scale):
     bad = (err > 1e-3) | (det < 0)
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
-        raise DataError(f"{path}, line {lines[i]}: r11..r33 is not a rotation matrix (|R^T R - I| = {err[i]:.3g}, det {det[i]:.3g})")
+        raise DataError(f"{at(path, lines[i])}: r11..r33 is not a rotation matrix (|R^T R - I| = {err[i]:.3g}, det {det[i]:.3g})")
     U, _, Vt = np.linalg.svd(R)  # project onto SO(3)
     return U @ Vt
 
@@ -327,9 +345,9 @@ def check_joint_units(q, joints, lines, angle_unit, path, prismatic=()):
         col = np.abs(q[:, j])
         if angle_unit == "rad" and col.max() > MAX_ANGLE_RAD:
             i = int(np.argmax(col))
-            raise DataError(f"{path}, line {lines[i]}, column {name!r}: {q[i, j]:.6g} rad is more than a full turn: "
+            raise DataError(f"{at(path, lines[i])}, column {name!r}: {q[i, j]:.6g} rad is more than a full turn: "
                             "degrees given as radians (or millimetres for a prismatic joint)? "
-                            "state the unit with angle_unit='deg' or a '# units: angle=deg' header line")
+                            "state the unit with angle_unit='deg', a '# units: angle=deg' header line or a column map's units")
     rev = [j for j, name in enumerate(joints) if name not in prismatic]
     q = q[:, rev]
     if angle_unit == "deg" and len(q) > 1 and q.size and np.abs(q).max() < np.pi and np.ptp(q, 0).max() > 0:
@@ -345,8 +363,9 @@ def check_prismatic_units(q, joints, lines, length_unit, path, prismatic=()):
         col = np.abs(q[:, j])
         if col.max() > MAX_PRISMATIC_M:
             i = int(np.argmax(col))
-            raise DataError(f"{path}, line {lines[i]}, column {name!r}: prismatic joint reading {q[i, j]:.6g} m: "
-                            "millimetres given as metres? state the unit with length_unit='mm' or a '# units: length=mm' header line")
+            raise DataError(f"{at(path, lines[i])}, column {name!r}: prismatic joint reading {q[i, j]:.6g} m: "
+                            "millimetres given as metres? state the unit with length_unit='mm', a '# units: length=mm' header line "
+                            "or a column map's units")
 
 
 def check_limit_units(q_si, joints, lines, path, limits, prismatic=()):
@@ -370,7 +389,7 @@ def check_limit_units(q_si, joints, lines, path, limits, prismatic=()):
         if np.all((scaled >= lo - margin) & (scaled <= hi + margin)):
             i = int(np.argmax(np.abs(col)))
             si = "m" if name in prismatic else "rad"
-            raise DataError(f"{path}, line {lines[i]}, column {name!r}: reading {col[i]:.6g} {si} is "
+            raise DataError(f"{at(path, lines[i])}, column {name!r}: reading {col[i]:.6g} {si} is "
                             f"{np.abs(col[i]) / size:.3g} times the joint limit [{lo:.4g}, {hi:.4g}] {si}, and every reading "
                             f"of the column fits the limits divided by {factor:.4g}: {unit}? state the unit")
 
@@ -388,13 +407,14 @@ def check_length_units(p_si, lines, length_unit, path):
     norm = np.linalg.norm(p_si, axis=1)
     if length_unit == "m" and norm.max() > MAX_POSITION_M:
         i = int(np.argmax(norm))
-        raise DataError(f"{path}, line {lines[i]}: measured point {norm[i]:.6g} m from the device origin: "
-                        "millimetres given as metres? state the unit with length_unit='mm' or a '# units: length=mm' header line")
+        raise DataError(f"{at(path, lines[i])}: measured point {norm[i]:.6g} m from the device origin: "
+                        "millimetres given as metres? state the unit with length_unit='mm', a '# units: length=mm' header line "
+                        "or a column map's units")
     if length_unit == "mm" and norm.max() < MIN_POSITION_MM * 1e-3:
         warnings.warn(f"{path}: every measured point is within {MIN_POSITION_MM} mm of the device origin although the "
                       "unit is mm: metres given as millimetres?", UnitWarning, stacklevel=3)
 
 
-__all__ = ["DataError", "DataWarning", "Layout", "Table", "UnitWarning", "check_limit_units", "check_prismatic_units",
+__all__ = ["DataError", "DataWarning", "Layout", "Table", "UnitWarning", "at", "check_limit_units", "check_prismatic_units",
            "constant_columns", "decode_text", "find_layout", "joint_limits", "joint_scale", "prismatic_joints", "read_table",
            "read_text", "resolve_unit"]

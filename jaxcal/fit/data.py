@@ -123,12 +123,52 @@ class Dataset:
             cf.check_limit_units(q, lay.joints, tab.lines, path, limits or {}, prismatic)
             cf.check_length_units(p, tab.lines, length, path)
         cov = {name: tab.values[:, col[c]] for name, c in lay.covariates.items()}
+        if lay.session is not None:
+            cov["session"] = tab.column_text(lay.session)
         if lay.orientation is not None:
             R = cf.rotations_from_columns(lay.orientation, block(lay.orientation_columns), tab.lines, path, cf.ANGLE_SCALE[angle])
             ds = cls(q=q, R=R, p=p, device=device or "pose", covariates=cov, joint_names=lay.joints, source=path)
         else:
             ds = cls(q=q, y=p, device=device or "position", covariates=cov, joint_names=lay.joints, source=path)
         ds.units = {"length": length, "angle": angle}
+        return ds
+
+    @classmethod
+    def from_table(cls, path, columns=None, device=None, joints=None, length_unit=None, angle_unit=None, sheet=None,
+                   header_row=None, check_units=True, prismatic=(), limits=None):
+        """Read an .xlsx workbook or a delimited text export (tracker, mocap) through a column map
+        (`jaxcal.fit.tables`, docs/file-formats.md).
+
+        columns: the column map, a mapping or the path of a YAML file holding one; None reads the CSV layout
+        (column names less a unit suffix such as `x [mm]`).
+        device: "position" or "pose" (default: "pose" when the map has orientation columns).
+        joints: the joint names in the order of q (`robot.joint_names`): picked by name from a joints mapping,
+        given by position to a joints list.
+        length_unit, angle_unit: the unit of columns whose unit neither the map nor the header names (default SI).
+        sheet, header_row: override the map's (default the first sheet, a detected header row).
+        prismatic: joints whose columns are lengths; limits, check_units: as `from_csv`.
+        A `session` column becomes `covariates["session"]` (strings); other covariates are numbers.
+        Errors name the file, the sheet and cell (`B17`) or the line, and the column.
+        """
+        from jaxcal.fit import tables
+
+        r = tables.read(path, columns, joints, length_unit, angle_unit, sheet, header_row, prismatic)
+        if check_units:
+            tables.check_readings(r, limits)
+        dev_class = None if device is None else type(device) if isinstance(device, Device) else device_class(device)
+        reading = None if dev_class is None else dev_class.marker_reading
+        if reading == "frame" and r.R is None:
+            raise DataError(f"{r.where}: device {dev_class.kind!r} needs orientation columns (the column map's 'orientation')")
+        if dev_class is not None and reading not in ("point", "frame"):
+            raise DataError(f"{r.where}: table readings are positions or poses, not {dev_class.kind!r}")
+        if r.R is not None and reading != "point":
+            ds = cls(q=r.q, R=r.R, p=r.p, device=device or "pose", covariates=r.covariates, joint_names=r.joint_names,
+                     source=str(path))
+        else:
+            ds = cls(q=r.q, y=r.p, device=device or "position", covariates=r.covariates, joint_names=r.joint_names,
+                     source=str(path))
+        angles = [u for u in r.units.values() if u in tables.ANGLE_UNITS]
+        ds.units = {"length": r.position_unit, "angle": angles[0] if angles else angle_unit or "rad", "columns": dict(r.units)}
         return ds
 
     @classmethod
@@ -164,6 +204,8 @@ class Dataset:
         if dev.reading_shape != (len(markers), 3):
             raise DataError(f"{path}: device has {dev.reading_shape[0]} marker points, the file gives markers {markers}")
         cov = {name: tab.values[:, col[c]] for name, c in lay.covariates.items()}
+        if lay.session is not None:
+            cov["session"] = tab.column_text(lay.session)
         ds = cls(q=q, y=p, device=dev, covariates=cov, joint_names=lay.joints, source=path)
         ds.units = {"length": length, "angle": angle}
         return ds
@@ -187,11 +229,15 @@ class Dataset:
         else:
             rpy = Rotation.from_matrix(self.y[:, :3, :3]).as_euler("xyz") * an
             meas, names = np.hstack([self.y[:, :3, 3] * ls, rpy]), ["x", "y", "z", "phix", "phiy", "phiz"]
-        cov = sorted(self.covariates)
+        cov = sorted(c for c in self.covariates if c != cf.SESSION_COLUMN)
         q_file = self.q / cf.joint_scale(joints, prismatic, length_unit, angle_unit)
         table = np.hstack([q_file, meas] + [np.asarray(self.covariates[c], float)[:, None] for c in cov])
+        rows = [[f"{v:.17g}" for v in row] for row in table]
+        if cf.SESSION_COLUMN in self.covariates:  # text labels, last
+            cov.append(cf.SESSION_COLUMN)
+            rows = [row + [str(label)] for row, label in zip(rows, self.covariates[cf.SESSION_COLUMN])]
         lines = [f"# units: length={length_unit}, angle={angle_unit}"]
         lines += [f"# prismatic: {', '.join(j for j in joints if j in prismatic)}"] if set(prismatic) & set(joints) else []
         lines += [",".join(joints + names + cov)]
-        lines += [",".join(f"{v:.17g}" for v in row) for row in table]
+        lines += [",".join(row) for row in rows]
         return write_text_atomic(str(path), "\n".join(lines) + "\n")

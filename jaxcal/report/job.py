@@ -112,6 +112,7 @@ def run_job(robot, data, holdout: float = 0.25, seed: int = 0, history: bool = T
         "per_sample_errors_mm": {split: {"before": None if v[0][0] is None else v[0][0].tolist(),
                                          "after": None if v[1][0] is None else v[1][0].tolist()} for split, v in errs.items()},
     }
+    summary["sessions"] = fit.info.get("sessions", [])
     summary["heldout_verdict"] = heldout_verdict(summary)
     summary["health"] = job_health(fit, summary)
     return JobResult(fit, nominal, train, test, summary)
@@ -230,6 +231,20 @@ def heldout_verdict(summary) -> str | None:
     return f"Held-out error reduced by {100 * (1 - h['after'] / h['before']):.0f}% ({h['before']:.3g} -> {h['after']:.3g} mm)."
 
 
+def session_markdown(rows: list[dict]) -> list[str]:
+    """The "Sessions" section: one device frame per session (`fit.sessions.session_summary`)."""
+    if not rows:
+        return []
+    lines = ["## Sessions", "", f"sessions: {len(rows)} (one device frame each); training samples, RMS error and where "
+             "each session's frame lies from the first one's.", "",
+             "| session | samples | RMS [mm] | frame offset [m] | frame rotation [deg] | |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        flag = "RMS above 3x the others' median" if r["inconsistent"] else ""
+        lines.append(f"| {md_text(r['session'])} | {r['samples']} | {_fmt(r['rms'])} | {_fmt(r.get('frame_offset_m'))} | "
+                     f"{_fmt(np.degrees(r['frame_rotation_rad']) if 'frame_rotation_rad' in r else None, '.3g')} | {flag} |")
+    return lines + [""]
+
+
 def job_markdown(summary, images: dict, robot_file: str | None) -> str:
     r = summary["rms"]
     s = summary["samples"]
@@ -258,6 +273,7 @@ def job_markdown(summary, images: dict, robot_file: str | None) -> str:
     lines += ["", md_text(verdict)] if verdict else []
     lines += ["", f"Solver {summary['solver']}: {summary['iterations']} iterations, converged {summary['converged']}; "
               f"compile {t.get('compile_s', 0):.2f} s, run {t.get('run_s', 0) * 1e3:.1f} ms.", ""]
+    lines += session_markdown(summary.get("sessions", []))
     ident = summary["identifiability"]
     lines += ["## Identifiability", "",
               f"{ident['estimated']} of {ident['free']} free parameters identified (base set of the weighted Jacobian's "
