@@ -180,3 +180,11 @@ def test_a_session_column_in_the_csv_calibrates_from_the_command_line(tmp_path):
     res = json.load(open(out / "results.json"))
     assert res["rms"]["heldout"]["position_mm"]["after"] < 1.5 * SIGMA * np.sqrt(3) * 1e3
     assert "sessions: 2 (one device frame each)" in (out / "report.md").read_text()
+
+
+def test_gap_diagnosis_refuses_mixed_sessions(three_days):
+    """The gap model has one device frame: data of several sessions are refused with a message naming them, not
+    diagnosed as one set-up (which would read the frames' difference as an unexplained gap)."""
+    rb, _, _, train, _, _ = three_days
+    with pytest.raises(ValueError, match=r"one measurement session at a time .*day1"):
+        jc.gap.diagnose(rb, train)

@@ -49,6 +49,7 @@ import scipy.stats
 from jaxcal.fit import core
 from jaxcal.fit.base import base_set
 from jaxcal.fit.data import Dataset
+from jaxcal.fit.sessions import session_labels
 from jaxcal.gap import fit as gf
 from jaxcal.gap import where as wh
 from jaxcal.gap.baseline import baseline_fits
@@ -339,6 +340,10 @@ def prepare(robot, data: Dataset, folds: int, seed: int, effects) -> Prepared:
         raise ValueError(f"gap diagnosis needs a position or pose device, got {device.kind!r}")
     if data.q.shape[1] != robot.n_inputs:
         raise ValueError(f"data has {data.q.shape[1]} joint columns, robot {robot.name!r} has {robot.n_inputs} inputs")
+    sessions = session_labels(data)
+    if len(sessions) > 1:  # the gap model has one device frame
+        raise ValueError(f"gap diagnosis takes one measurement session at a time (the data have {len(sessions)}: "
+                         f"{list(sessions)}); diagnose each session's samples (data.subset)")
     unknown = [e for e in effects if e not in registered_effects()]
     if unknown:
         raise ValueError(f"unknown effect(s) {unknown}; expected some of {registered_effects()}")
