@@ -105,8 +105,9 @@ def _warn(text) -> None:
 # -- calibrate ---------------------------------------------------------------------------------------
 DEFAULTS = {"holdout": 0.25, "seed": 0, "solver": "lm", "out": "calib-output", "sigma_position": 1e-3,
             "sigma_orientation": 1e-3, "max_steps": 200}
-JOB_KEYS = ("robot", "data", "columns", "base", "tip", "out", "device", "marker", "joints", "length_unit", "angle_unit", "holdout",
-            "seed", "solver", "free", "known", "sigma_position", "sigma_orientation", "max_steps", "rtol", "atol")
+JOB_KEYS = ("robot", "data", "columns", "validation_data", "verify", "base", "tip", "out", "device", "marker", "joints",
+            "length_unit", "angle_unit", "holdout", "seed", "solver", "free", "known", "sigma_position", "sigma_orientation",
+            "max_steps", "rtol", "atol")
 
 
 def tolerances(options) -> dict:
@@ -146,7 +147,35 @@ def job_options(args) -> dict:
     return job
 
 
-OUTPUTS = ("results.json", "report.md", "report.html", "errors_per_pose.png", "error_map.png", "convergence.png")
+OUTPUTS = ("results.json", "report.md", "report.html", "errors_per_pose.png", "error_map.png", "convergence.png",
+           "verdict.json")
+
+
+def load_thresholds(path: str) -> dict:
+    """The `--verify` thresholds: a YAML (or JSON) mapping such as `max_heldout_rms_mm: 0.5` (docs/cli.md)."""
+    import yaml
+
+    from jaxcal.config import ConfigError
+    from jaxcal.textfile import read_bytes
+    from jaxcal.yamlfile import load_yaml
+
+    try:
+        doc = load_yaml(read_bytes(path, ConfigError))
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML: {' '.join(str(exc).split())}") from None
+    if not isinstance(doc, dict) or not doc:
+        raise ConfigError(f"{path}: --verify needs a mapping of thresholds, e.g. 'max_heldout_rms_mm: 0.5'")
+    return {k: _yaml_number(v) for k, v in doc.items()}
+
+
+def _yaml_number(value):
+    """YAML 1.1 reads 1.0e6 (no exponent sign) as text: such a value is the number it spells."""
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
 
 
 def is_table(path: str, columns) -> bool:
@@ -215,23 +244,35 @@ def check_known(known, device) -> None:
 
 
 def _calibrate(args) -> int:
+    from jaxcal.config import ConfigError
     from jaxcal.io_atomic import check_not_input, check_output_dir, cleanup_on_signals
-    from jaxcal.report.job import heldout_verdict, run_job, write_job
+    from jaxcal.report.job import heldout_verdict, run_job, supported_file_name, verify, write_job
     from jaxcal.robots.io import save_robot
 
     try:
         job = job_options(args)
-        inputs = [job["robot"], job["data"], args.config, job.get("columns")]
+        inputs = [job["robot"], job["data"], args.config, job.get("columns"), job.get("validation_data"), job.get("verify")]
         out = job["out"]
         for name in OUTPUTS:
             check_not_input(os.path.join(out, name), inputs)
+        thresholds = load_thresholds(job["verify"]) if job.get("verify") else None
+        if thresholds:
+            try:  # unknown names and bad values fail before any work
+                verify({"health": {"ok": True}}, thresholds)
+            except ValueError as exc:
+                raise ConfigError(f"{job['verify']}: {exc}") from None
         check_output_dir(out, inputs)  # before any work: a file, unwritable, or holding other files
         with _progress(not args.quiet) as prog:
             with _stage(prog, "loading robot and data"):
                 robot = load_robot_arg(job["robot"], job.get("base"), job.get("tip"))
                 data, data_warnings = load_job_data(job, robot)
+            validation = None
+            if job.get("validation_data"):
+                validation, more = load_job_data(dict(job, data=job["validation_data"]), robot)
+                data_warnings = data_warnings + more
             robot_file = calibrated_robot_file(robot)
             check_not_input(os.path.join(out, robot_file), inputs)
+            check_not_input(os.path.join(out, supported_file_name(robot_file)), inputs)
             check_known(job.get("known") or (), data.device)
             free = expand_free(job.get("free"), robot)
             check_enough_samples(data, job["holdout"])
@@ -241,10 +282,12 @@ def _calibrate(args) -> int:
                 res = run_job(robot, data, holdout=job["holdout"], seed=job["seed"], solver=job["solver"], free=free,
                               known=tuple(job.get("known") or ()), sigma_position=job["sigma_position"],
                               sigma_orientation=job["sigma_orientation"], max_steps=job["max_steps"], progress=now,
-                              **tolerances(job))
+                              validation=validation, **tolerances(job))
             add_data_warnings(res.summary, data_warnings)
+            if thresholds:
+                res.summary["verdict"] = verify(res.summary, thresholds)
             with _stage(prog, f"writing the report to {out}"), cleanup_on_signals():
-                write_job(out, res, lambda path: save_robot(robot, path, res.fit.a), robot_file)
+                write_job(out, res, lambda path, a: save_robot(robot, path, a), robot_file)
     except _input_errors() as exc:
         return _fail(exc)
     r = res.summary["rms"]
@@ -257,6 +300,13 @@ def _calibrate(args) -> int:
     if verdict:
         print(verdict)
     print(f"report: {os.path.join(out, 'report.md')}; calibrated robot: {os.path.join(out, robot_file)}")
+    verdict = res.summary.get("verdict")
+    if verdict is not None:
+        failed = [c["check"] for c in verdict["checks"] if not c["pass"]]
+        print(f"verify: {'PASS' if verdict['pass'] else 'FAIL (' + ', '.join(failed) + ')'}; "
+              f"{os.path.join(out, 'verdict.json')}")
+        if not verdict["pass"]:
+            return 1
     return health_exit_code(res.summary["health"], args.accept_warnings)
 
 
@@ -596,6 +646,11 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("data", nargs="?", help="measurement CSV, .xlsx workbook or text export (docs/file-formats.md) "
                    "(or 'data:' in --config)")
     c.add_argument("--config", help="YAML or TOML job file (keys as these options; the options given here win)")
+    c.add_argument("--validation-data", dest="validation_data", metavar="FILE",
+                   help="a second measurement file of the same set-up, evaluated with the calibration (never fitted)")
+    c.add_argument("--verify", metavar="THRESHOLDS.yaml", help="pass/fail thresholds (max_heldout_rms_mm, "
+                   "max_validation_rms_mm, max_train_rms_mm, max_heldout_orientation_mrad, max_condition_number, "
+                   "require_health_ok); writes verdict.json and exits 1 on FAIL")
     c.add_argument("--base", help="URDF: first link of the chain")
     c.add_argument("--tip", help="URDF: last link of the chain")
     c.add_argument("--out", help="output folder (default calib-output)")

@@ -59,6 +59,8 @@ SCHEMA = {
     "tip": (_string, "a link name"),
     "data": (_string, "a path to a CSV or .xlsx file"),
     "columns": (_string, "a path to a column map (YAML, docs/file-formats.md)"),
+    "validation_data": (_string, "a path to a measurement file"),
+    "verify": (_string, "a path to a thresholds file (YAML)"),
     "out": (_string, "a folder path"),
     "device": (lambda v: v in ("position", "pose"), "'position' or 'pose'"),
     "marker": (lambda v: (isinstance(v, int) and not isinstance(v, bool) and v >= 1) or _string(v), "a marker number >= 1"),
@@ -75,7 +77,7 @@ SCHEMA = {
     "rtol": (lambda v: _number(v) and v > 0, "a positive number"),
     "atol": (lambda v: _number(v) and v > 0, "a positive number"),
 }
-PATH_KEYS = ("robot", "data", "columns", "out")
+PATH_KEYS = ("robot", "data", "columns", "validation_data", "verify", "out")
 UNITS = {"length": ("m", "mm"), "angle": ("rad", "deg")}
 
 

@@ -154,7 +154,7 @@ def test_failure_while_writing_leaves_nothing(tmp_path):
     job = run_job(rb, data, holdout=0.25, sigma_position=1e-5, history=False)
     out = tmp_path / "out"
 
-    def broken_writer(path):
+    def broken_writer(path, a):
         with open(path, "w") as fh:
             fh.write("half a robot")
         raise OSError("disk full")

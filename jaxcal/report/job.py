@@ -34,6 +34,10 @@ class JobResult:
     train: object
     test: object | None
     summary: dict
+    supported_a: np.ndarray | None = None  # robot parameters with only the corrections of >= SUPPORTED_SIGMA kept
+
+
+SUPPORTED_SIGMA = 2.0  # a correction the data support: |change| >= this many standard errors
 
 
 def _rms(e):
@@ -83,9 +87,52 @@ def parameter_rows(fit) -> list[dict]:
     return rows
 
 
-def run_job(robot, data, holdout: float = 0.25, seed: int = 0, history: bool = True, **identify_kw) -> JobResult:
+def supported_corrections(fit, k: float = SUPPORTED_SIGMA):
+    """(a, kept, dropped): the robot parameters at nominal except the corrections the data support, |identified -
+    nominal| >= k standard errors (every parameter with a standard error is judged; the others stay nominal)."""
+    nominal = np.asarray(fit.robot.nominal_np, float)
+    a = nominal.copy()
+    kept, dropped = [], []
+    for name, se in fit.std_errors.items():
+        if name not in fit.robot.names:
+            continue
+        i = fit.robot.names.index(name)
+        change = float(fit.a[i]) - nominal[i]
+        if abs(change) >= k * se:
+            a[i] = float(fit.a[i])
+            kept.append(name)
+        else:
+            dropped.append(name)
+    return a, kept, dropped
+
+
+def _rms_of(fit, data) -> dict | None:
+    """Position (mm) and orientation (mrad) RMS of a fit on data; None without data."""
+    if data is None or len(data) == 0:
+        return None
+    pe, oe = _errors(fit, data)
+    out = {"position_mm": _rms(pe)}
+    if oe is not None:
+        out["orientation_mrad"] = _rms(oe)
+    return out
+
+
+def supported_summary(robot, fit, train, test, identify_kw):
+    """The model with only the supported corrections (`supported_corrections`), its device frame / marker refitted
+    on the training samples: (a, summary dict with the kept and dropped names and its train / held-out RMS)."""
+    a, kept, dropped = supported_corrections(fit)
+    kw = {k: v for k, v in identify_kw.items() if k not in ("free", "progress")}
+    refit = identify(robot, train, free=(), a0=a, **kw)
+    return a, {"sigma": SUPPORTED_SIGMA, "kept": kept, "dropped": dropped, "train": _rms_of(refit, train),
+               "heldout": _rms_of(refit, test)}
+
+
+def run_job(robot, data, holdout: float = 0.25, seed: int = 0, history: bool = True, validation=None,
+            **identify_kw) -> JobResult:
     """Fit `robot` on a random (1 - holdout) share of `data`; evaluate both the calibrated and the
-    nominal model (device frame / marker fitted) on the training and held-out samples.
+    nominal model (device frame / marker fitted) on the training and held-out samples, and on `validation`
+    (a separate Dataset measured in the same set-up: the training fit's device frame is used), and the model
+    with only the corrections the data support (`supported_summary`).
     history: record the cost per solver step for the convergence plot (one more compile)."""
     train, test = data.split(1.0 - holdout, seed) if holdout > 0 else (data, None)
     if test is not None and len(test) == 0:
@@ -113,9 +160,55 @@ def run_job(robot, data, holdout: float = 0.25, seed: int = 0, history: bool = T
                                          "after": None if v[1][0] is None else v[1][0].tolist()} for split, v in errs.items()},
     }
     summary["sessions"] = fit.info.get("sessions", [])
+    if validation is not None:
+        summary["validation"] = {"data": validation.source, "samples": len(validation),
+                                 "before": _rms_of(nominal, validation), "after": _rms_of(fit, validation)}
+    supported_a, summary["supported"] = supported_summary(robot, fit, train, test, identify_kw)
     summary["heldout_verdict"] = heldout_verdict(summary)
     summary["health"] = job_health(fit, summary)
-    return JobResult(fit, nominal, train, test, summary)
+    return JobResult(fit, nominal, train, test, summary, supported_a)
+
+
+VERIFY_KEYS = {  # threshold -> where its value is in the summary
+    "max_train_rms_mm": ("rms", "train", "position_mm", "after"),
+    "max_heldout_rms_mm": ("rms", "heldout", "position_mm", "after"),
+    "max_validation_rms_mm": ("validation", "after", "position_mm"),
+    "max_heldout_orientation_mrad": ("rms", "heldout", "orientation_mrad", "after"),
+    "max_condition_number": ("identifiability", "condition_number_scaled"),
+}
+
+
+def _lookup(summary, path):
+    for key in path:
+        if not isinstance(summary, dict) or key not in summary:
+            return None
+        summary = summary[key]
+    return summary
+
+
+def verify(summary: dict, thresholds: dict) -> dict:
+    """The pass/fail verdict of a calibration against thresholds (`VERIFY_KEYS`, and `require_health_ok`, default
+    true): one check per threshold with its value; a threshold whose quantity the run does not have (no held-out
+    or validation samples) fails, so a CI gate never passes on a missing number."""
+    unknown = sorted(set(thresholds) - set(VERIFY_KEYS) - {"require_health_ok"})
+    if unknown:
+        from jaxcal.names import suggestion
+
+        raise ValueError(f"unknown threshold(s) {unknown}{suggestion(unknown[0], list(VERIFY_KEYS) + ['require_health_ok'])}; "
+                         f"known: {', '.join(VERIFY_KEYS)}, require_health_ok")
+    checks = []
+    for key, limit in thresholds.items():
+        if key == "require_health_ok":
+            continue
+        if isinstance(limit, bool) or not isinstance(limit, (int, float)) or not np.isfinite(limit):
+            raise ValueError(f"threshold {key!r} must be a finite number, got {limit!r}")
+        value = _lookup(summary, VERIFY_KEYS[key])
+        checks.append({"check": key, "value": value, "threshold": float(limit),
+                       "pass": value is not None and value <= limit})
+    if thresholds.get("require_health_ok", True):
+        checks.append({"check": "health_ok", "value": summary["health"]["ok"], "threshold": True,
+                       "pass": bool(summary["health"]["ok"])})
+    return {"pass": all(c["pass"] for c in checks), "checks": checks}
 
 
 # -- plots ---------------------------------------------------------------------------------------
@@ -274,6 +367,7 @@ def job_markdown(summary, images: dict, robot_file: str | None) -> str:
     lines += ["", f"Solver {summary['solver']}: {summary['iterations']} iterations, converged {summary['converged']}; "
               f"compile {t.get('compile_s', 0):.2f} s, run {t.get('run_s', 0) * 1e3:.1f} ms.", ""]
     lines += session_markdown(summary.get("sessions", []))
+    lines += validation_markdown(summary.get("validation"))
     ident = summary["identifiability"]
     lines += ["## Identifiability", "",
               f"{ident['estimated']} of {ident['free']} free parameters identified (base set of the weighted Jacobian's "
@@ -297,7 +391,47 @@ def job_markdown(summary, images: dict, robot_file: str | None) -> str:
         lines += [f"### {title}", "", f"![{title}]({name})", ""]
     if robot_file:
         lines += ["## Calibrated robot", "", f"{md_code(robot_file)} (device frame and marker offset are in `results.json`).", ""]
+    lines += supported_markdown(summary.get("supported"), summary.get("supported_file"))
+    lines += verdict_markdown(summary.get("verdict"))
     return "\n".join(lines)
+
+
+def _rms_cell(d, key="position_mm"):
+    return _fmt(None if d is None else d.get(key))
+
+
+def validation_markdown(v) -> list[str]:
+    """The "Validation data" section: the calibration on a separate file measured in the same set-up."""
+    if not v:
+        return []
+    return ["## Validation data", "", f"{md_code(v['data'])}: {v['samples']} samples, measured apart from the calibration "
+            "data (device frame of the training fit).", "", "| | position RMS [mm] |", "|---|---|",
+            f"| nominal robot | {_rms_cell(v['before'])} |", f"| calibrated | {_rms_cell(v['after'])} |", ""]
+
+
+def supported_markdown(sup, file_name) -> list[str]:
+    """The section on the model with only the corrections the data support (>= 2 standard errors)."""
+    if not sup:
+        return []
+    where = f" Written as {md_code(file_name)}." if file_name else ""
+    return ["## Corrections the data support", "",
+            f"{len(sup['kept'])} of {len(sup['kept']) + len(sup['dropped'])} estimated robot corrections are at least "
+            f"{sup['sigma']:g} standard errors from nominal; the model with only those (device frame and marker refitted) "
+            f"gives training RMS {_rms_cell(sup['train'])} mm and held-out {_rms_cell(sup['heldout'])} mm.{where}", "",
+            f"Dropped (within {sup['sigma']:g} standard errors of nominal): {', '.join(map(md_text, sup['dropped'])) or 'none'}.",
+            ""]
+
+
+def verdict_markdown(verdict) -> list[str]:
+    """The `--verify` verdict: pass / fail per threshold."""
+    if not verdict:
+        return []
+    lines = ["## Verdict", "", f"**{'PASS' if verdict['pass'] else 'FAIL'}**", "", "| check | value | threshold | |",
+             "|---|---|---|---|"]
+    for c in verdict["checks"]:
+        value = c["value"] if isinstance(c["value"], bool) or c["value"] is None else _fmt(c["value"])
+        lines.append(f"| {c['check']} | {value} | {c['threshold']} | {'pass' if c['pass'] else 'FAIL'} |")
+    return lines + [""]
 
 
 _CSS = ("body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}"
@@ -316,8 +450,16 @@ def job_html(markdown_text: str, title: str) -> str:
             f"<body>\n{body}</body></html>\n")
 
 
+def supported_file_name(robot_file: str) -> str:
+    """`ur10_calibrated.urdf` -> `ur10_calibrated_2sigma.urdf`."""
+    stem, ext = os.path.splitext(robot_file)
+    return f"{stem}_{SUPPORTED_SIGMA:g}sigma{ext}"
+
+
 def write_job(out: str, job: JobResult, write_robot=None, robot_file: str | None = None) -> list[str]:
-    """Write results.json, report.md, report.html, the plots and (via `write_robot(path)`) the calibrated robot.
+    """Write results.json, report.md, report.html, the plots, verdict.json (after `--verify`) and, via
+    `write_robot(path, a)`, the calibrated robot and the robot with only the supported corrections
+    (`supported_file_name(robot_file)`).
 
     Everything is first written to a hidden staging folder beside `out` and swapped in as `out` only
     when all files exist (`jaxcal.io_atomic.replace_folder`): a failure leaves `out` as it was (the
@@ -341,11 +483,19 @@ def _write_all(folder, job, write_robot, robot_file):
     else:
         images.pop("Convergence")
     names = list(images.values())
+    extra = {}
     if write_robot is not None and robot_file:
-        os.chmod(write_robot(os.path.join(folder, robot_file)), 0o644)
+        os.chmod(write_robot(os.path.join(folder, robot_file), np.asarray(job.fit.a)), 0o644)
         names.append(robot_file)
+        if job.supported_a is not None:
+            extra["supported_file"] = supported_file_name(robot_file)
+            os.chmod(write_robot(os.path.join(folder, extra["supported_file"]), job.supported_a), 0o644)
+            names.append(extra["supported_file"])
+    if "verdict" in job.summary:
+        write_json_atomic(os.path.join(folder, "verdict.json"), job.summary["verdict"])
+        names.append("verdict.json")
     names += ["report.md", "report.html", "results.json"]
-    summary = dict(job.summary, files=names)
+    summary = dict(job.summary, files=names, **extra)
     text = job_markdown(summary, images, robot_file)
     write_text_atomic(os.path.join(folder, "report.md"), text)
     write_text_atomic(os.path.join(folder, "report.html"), job_html(text, f"Calibration report: {summary['robot']}"))
@@ -354,4 +504,4 @@ def _write_all(folder, job, write_robot, robot_file):
 
 
 __all__ = ["JobResult", "identifiability_summary", "job_markdown", "md_code", "md_text", "parameter_rows", "plot_error_map",
-           "plot_errors_per_pose", "job_html", "run_job", "write_job"]
+           "plot_errors_per_pose", "job_html", "run_job", "supported_corrections", "verify", "write_job"]
