@@ -17,7 +17,7 @@ from jaxcal import (
 from jaxcal._setup import enable_compilation_cache
 from jaxcal.fit import DataError, Dataset, FitResult, identify, perturb, random_configurations, simulate, uncertainty
 from jaxcal.fit.identifiable import identifiable
-from jaxcal.fit.sessions import apply_to_session
+from jaxcal.fit.identify import apply_to_session
 from jaxcal.forward import forward
 from jaxcal.kin import Pose, Robot
 from jaxcal.measure import make_device

@@ -12,8 +12,8 @@ from conftest import central_fd, rel_err
 from scipy.spatial.transform import Rotation
 
 import jaxcal as jc
-from jaxcal.fit.identify import residual_weights, residuals
-from jaxcal.fit.sessions import apply_to_session, readings_for, session_dataset
+from jaxcal.fit.identify import apply_to_session, residual_weights, residuals
+from jaxcal.fit.sessions import readings_for, session_dataset
 from jaxcal.kin.rotations import exp_so3
 from jaxcal.measure.sessions import Sessions
 

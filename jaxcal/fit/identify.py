@@ -33,6 +33,7 @@ from jaxcal.fit.data import Dataset
 from jaxcal.fit.health import Health, assess
 from jaxcal.fit.sessions import (
     INCONSISTENT,
+    SESSION,
     readings_for,
     session_dataset,
     session_device_params,
@@ -519,3 +520,16 @@ def _weak_directions(J, names, rel: float = 1e-8):
         out.append((float(s[k]), comp))
     return out
 
+
+def apply_to_session(fit, data: Dataset, refit=("dev", "tool"), **identify_options):
+    """A calibrated robot used on a new session: the robot held at fit.a, only the device parameters whose names
+    start with `refit` fitted to this session's data (default the frame and the marker: a marker put back on the
+    tool is rarely exactly where it was); the rest of the device at the calibration's values."""
+    device = fit.device.inner if isinstance(fit.device, Sessions) else fit.device
+    d = np.asarray(fit.device_params, float)
+    if isinstance(fit.device, Sessions):
+        d = d[fit.device.index[0]]  # the shared entries are the same in every session; the frame is refitted
+    known = tuple(sorted({n.split(".")[0] for n in device.names} - set(refit)))
+    data = Dataset(data.q, data.y, device, {k: v for k, v in data.covariates.items() if k != SESSION},
+                   joint_names=data.joint_names, source=data.source)
+    return identify(fit.robot, data, free=(), known=known, a0=fit.a, device_params=d, **identify_options)

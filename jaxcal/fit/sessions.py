@@ -3,8 +3,8 @@
 `identify` calls `session_dataset` by itself when the data carry a "session" covariate with two or more
 labels (a `session` column in the CSV). `session_summary` says how consistent the sessions are: samples,
 RMS error per session, and where each session's frame lies relative to the first (how far the tracker
-was moved). `apply_to_session` uses a calibrated robot on a new session: only that session's device
-parameters are fitted (docs/identification.md, "Sessions").
+was moved). `jaxcal.fit.identify.apply_to_session` uses a calibrated robot on a new session: only that
+session's device parameters are fitted (docs/identification.md, "Sessions").
 """
 
 from __future__ import annotations
@@ -99,19 +99,3 @@ def summary_lines(rows: list[dict], unit: str) -> list[str]:
         flag = f"  <- RMS above {INCONSISTENT:g}x the other sessions' median" if r["inconsistent"] else ""
         lines.append(f"  {r['session']}: {r['samples']} samples, RMS {r['rms']:.4g} {unit}{where}{flag}")
     return lines
-
-
-def apply_to_session(fit, data: Dataset, refit=("dev", "tool"), **identify_options):
-    """A calibrated robot used on a new session: the robot held at fit.a, only the device parameters whose names
-    start with `refit` fitted to this session's data (default the frame and the marker: a marker put back on the
-    tool is rarely exactly where it was); the rest of the device at the calibration's values."""
-    from jaxcal.fit.identify import identify
-
-    device = fit.device.inner if isinstance(fit.device, Sessions) else fit.device
-    d = np.asarray(fit.device_params, float)
-    if isinstance(fit.device, Sessions):
-        d = d[fit.device.index[0]]  # the shared entries are the same in every session; the frame is refitted
-    known = tuple(sorted({n.split(".")[0] for n in device.names} - set(refit)))
-    data = Dataset(data.q, data.y, device, {k: v for k, v in data.covariates.items() if k != SESSION},
-                   joint_names=data.joint_names, source=data.source)
-    return identify(fit.robot, data, free=(), known=known, a0=fit.a, device_params=d, **identify_options)
