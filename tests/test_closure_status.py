@@ -67,3 +67,12 @@ def test_delta_general_path_closes_what_the_fast_path_misses_and_differentiates(
     J = jax.jacfwd(f)(a[free])
     err = rel_err(J, central_fd(f, a[free], h=1e-6))
     assert err < 1e-6, err
+
+
+def test_solvers_that_need_reverse_mode_are_refused_on_the_generic_closure(fb3):
+    """Dogleg and BFGS transpose the Jacobian; the generic closure's custom JVP cannot be transposed (it raised an
+    AssertionError deep in JAX): identify says so and names the solvers that work."""
+    data = jc.simulate(fb3, fb3.nominal, jc.random_configurations(fb3, 12, seed=1), "position")
+    for solver in ("dogleg", "bfgs"):
+        with pytest.raises(ValueError, match="reverse-mode"):
+            jc.identify(fb3, data, solver=solver)

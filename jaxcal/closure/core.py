@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable, NamedTuple
+from typing import Callable, ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -94,6 +94,10 @@ class Closure:
     @property
     def n_free(self) -> int:
         return len(self.free)
+
+    # whether reverse-mode derivatives (J^T, needed by the dogleg and BFGS solvers) pass through the closure: the
+    # custom JVP below (implicit function theorem) cannot be transposed; the Delta's fast path can
+    transposable: ClassVar[bool] = False
 
 
 class ClosureSolution(NamedTuple):

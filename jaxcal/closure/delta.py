@@ -12,6 +12,8 @@ elbow is b_i = [(rb + n cos th_i) cos psi_i, (rb + n cos th_i) sin psi_i, -n sin
 - `inverse`: per arm, in the frame Fu whose 1 axis points to A_i (eq 2.147-2.158), the elbow
   lies on the circle of the arm and on the sphere of radius m around C_i; the elbow-out
   intersection is taken.
+- Clavel's original solution (eq 2.118-2.134) and its breakdown ratio K_crit: `jaxcal.closure.clavel`.
+- `open_loop_vector` / `open_loop_columns`: the open-loop Jacobian check of §2.4.3 (210 x 124).
 
 Closure of the full 30-body MCPC model (Table 4.6, `jaxcal/robots/data/delta.yaml`): every rod
 but the first ends in a universal joint whose centre does not move with the joint angles (bodies
@@ -35,7 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.closure.core import Closure, ClosureSolution, failed_pose
+from jaxcal.closure.core import Closure, ClosureSolution, euler_parameters, failed_pose, tree_frames
 from jaxcal.closure.track import CLOSED, OTHER_MODE, UNCLOSED, Tracked, track
 from jaxcal.kin.model import joint_variables
 from jaxcal.kin.pose import Pose
@@ -467,6 +469,8 @@ class DeltaClosure(Closure):
     calls `forward(robot, a, q)` (nominal direct solution start + Newton on the reduced square
     system); the generic LM of `jaxcal.closure` still works from `start` near the home setting."""
 
+    transposable = True  # its JVP is built from reverse-mode Jacobians
+
     def forward(self, robot, a, q) -> Pose:
         return forward(robot, a, q)
 
@@ -504,3 +508,26 @@ def with_delta_closure(robot, free=None):
         raise ValueError(f"robot {robot.name!r}: the Delta does not close at its home setting {plain.home_np}")
     out = robot.replace(closure=DeltaClosure(pairs=PAIRS, free=FREE, start=tuple(float(v) for v in start.theta_free)))
     return out if free is None else out.with_free(free)
+
+
+# -- the open-loop Jacobian of §2.4.3 ----------------------------------------------------------
+def open_loop_vector(robot, a, qj, theta_free):
+    """Position and Euler parameters of every body frame of the open tree, (7 n_bodies,) = (210,)
+    for Table 4.6: the rows of the open-loop Jacobian D_p of eq 2.63-2.64, stacked over the frames."""
+    f = tree_frames(robot, a, qj, theta_free)
+    return jnp.concatenate([f.p, jax.vmap(euler_parameters)(f.R)], axis=1).ravel()
+
+
+def open_loop_columns(robot) -> np.ndarray:
+    """Indices of the 124 geometric parameters of §2.4.3: all 157 of Table 4.6 except the 18 joint
+    settings a3 of the actuated and free joints (joint variables, not geometry) and the a1, a2, a3 of
+    the five spherical closure frames 10-14 (a spherical closure has only its position, d1 d2 d3):
+    23 x 5 + 5 x 3 + 2 x 6 = 142 model parameters (the count of Table 3.2), 142 - 18 = 124."""
+    moving = set(ACTUATORS + FREE)
+
+    def kept(name):
+        body, part = name.split(".")
+        k = int(body[1:])
+        return not ((k in CLOSURES and part in ("a1", "a2", "a3")) or (k in moving and part == "a3"))
+
+    return np.array([i for i, n in enumerate(robot.names) if kept(n)])

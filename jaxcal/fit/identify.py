@@ -50,6 +50,9 @@ SOLVERS = tuple(core.SOLVERS)
 residuals = core.residuals
 
 
+REVERSE_MODE_SOLVERS = ("dogleg", "bfgs")  # optimistix solvers that transpose the Jacobian
+
+
 def residual_weights(device: Device, sigma_position=1e-3, sigma_orientation=1e-3):
     """Per-component weights 1/sigma for one sample's residual vector (`Device.weights`)."""
     return device.weights(sigma_position, sigma_orientation)
@@ -374,6 +377,9 @@ def identify(
     if data.q.shape[1] != robot.n_inputs:
         raise ValueError(f"data has {data.q.shape[1]} joint columns, robot {robot.name!r} has {robot.n_inputs} inputs")
     core.make_solver(solver, rtol, atol)  # unknown names fail before any work
+    if solver in REVERSE_MODE_SOLVERS and robot.closure is not None and not robot.closure.transposable:
+        raise ValueError(f"solver {solver!r} needs reverse-mode derivatives (J^T), which the generic loop closure of "
+                         f"{robot.name!r} (jaxcal.closure.core) does not provide; use 'lm', 'lm_optimistix' or 'gn'")
     names = tuple(robot.names) + tuple(device.names)
     a0 = robot.nominal if a0 is None else jnp.asarray(a0, dtype=jnp.float64)
     d0 = device.nominal if device_params is None else jnp.asarray(device_params, dtype=jnp.float64)

@@ -10,13 +10,25 @@ name (`make_device`, `as_device`); the three-point orientation recovery and the 
 | "three_point"    | three sphere centres, (3, 3)    | dev (6); spheres known      | three_point    |
 | "theodolite"     | (azimuth, elevation) rad, (2,)  | dev (6), tool point (3)     | theodolite     |
 | "laser_range"    | distance to the marker m, (1,)  | dev x y z (3), tool (3)     | laser_range    |
+| "theodolite_range" | (azimuth, elevation, range), (3,) | dev (6), tool point (3)   | theodolite_range |
 | "pose_target"    | tool frame in the fixture frame, (4, 4) | fixture frame (6)   | pose_target    |
 | "aim_line"       | target offsets from a pointer's line, distances (3K + pairs,) | K targets (3 K) | aim_line |
 
 A new kind is one module: subclass `jaxcal.measure.base.Device` and call `register(cls, *aliases)`.
 """
 
-from jaxcal.measure import aim_line, laser_range, multi_position, orientation, pose, pose_target, position, theodolite, three_point  # noqa: F401
+from jaxcal.measure import (  # noqa: F401  (each module registers its kind)
+    aim_line,
+    laser_range,
+    multi_position,
+    orientation,
+    pose,
+    pose_target,
+    position,
+    theodolite,
+    theodolite_range,
+    three_point,
+)
 from jaxcal.measure.base import Device, frame_from_params, key_normal
 from jaxcal.measure.registry import as_device, device_class, make_device, register, registered_kinds
 from jaxcal.measure.theodolite import locate_theodolite, sight_angles
