@@ -80,12 +80,13 @@ def _scores_add(M, G, eps, *, index, regularised):
     return jax.vmap(one)(G)
 
 
-def configuration_blocks(robot: Robot, method_or_device, Q, a=None):
+def configuration_blocks(robot: Robot, method_or_device, Q, a=None, d=None, sigmas=(1.0, 1.0)):
     """Per-configuration Jacobian blocks (N, rows, P), column names and priorities.
 
     method_or_device: a single-configuration GECARO method ("position", "location": columns are
     the robot parameters) or a device (kind string or `jc.make_device`: columns are the robot's
-    then the device's parameters, residuals weighted 1 per metre and per radian)."""
+    then the device's parameters at d (default nominal), residuals weighted 1 / sigma with sigmas = (sigma_position,
+    sigma_orientation), by default 1 per metre and per radian)."""
     Q = jnp.asarray(np.asarray(Q, float))
     if isinstance(method_or_device, str) and method_or_device in METHODS:
         if method_or_device not in SINGLE_CONFIG_METHODS:
@@ -97,8 +98,9 @@ def configuration_blocks(robot: Robot, method_or_device, Q, a=None):
         rows = n_rows(method_or_device)
         return np.asarray(W).reshape(len(Q), rows, -1), tuple(robot.names), np.asarray(robot.priority, float)
     device = as_device(method_or_device)
-    a_full = jnp.concatenate([robot.nominal if a is None else jnp.asarray(a, dtype=jnp.float64), device.nominal])
-    w = residual_weights(device, 1.0, 1.0)
+    d = device.nominal if d is None else jnp.asarray(d, dtype=jnp.float64)
+    a_full = jnp.concatenate([robot.nominal if a is None else jnp.asarray(a, dtype=jnp.float64), d])
+    w = residual_weights(device, *sigmas)
     Y = jax.vmap(device.read, (0, None))(forward(robot, a_full[: robot.n_params], Q), a_full[robot.n_params:])
     blocks = jax.vmap(lambda q, y: jax.jacfwd(lambda x: residuals(robot, device, x, q[None], y[None], w)[0])(a_full))(Q, Y)
     names = tuple(robot.names) + tuple(device.names)
@@ -187,3 +189,82 @@ def random_design_conditions(robot: Robot, method_or_device="position", n: int =
         pick = rng.choice(len(pool), n, replace=False)
         out.append(np.linalg.cond(blocks[pick][:, :, cols].reshape(-1, len(cols))))
     return np.asarray(out)
+
+
+# -- the next measurement campaign, from the current calibration ----------------------------------------
+CRITERIA = ("d_optimal", "a_optimal")
+
+
+@dataclasses.dataclass(frozen=True)
+class NextCampaign:
+    """Configurations `q` = pool[`chosen`] to measure next, in the order chosen, and what they are predicted to
+    do to the standard errors of the calibration's estimated parameters (`names`; same data weights and
+    residual standard deviation as the calibration)."""
+
+    q: np.ndarray
+    chosen: np.ndarray
+    criterion: str
+    names: tuple[str, ...]
+    std_errors_now: np.ndarray
+    std_errors_after: np.ndarray
+    seconds: float
+
+
+@functools.partial(jax.jit, static_argnames=("criterion",))
+def _campaign_scores(M, G, *, criterion):
+    """For every candidate block G_c: log det (M + G_c) (D-optimal) or -trace (M + G_c)^-1 (A-optimal)."""
+    def one(Gc):
+        A = M + Gc
+        if criterion == "d_optimal":
+            return jnp.linalg.slogdet(A)[1]
+        return -jnp.trace(jnp.linalg.inv(A))
+    return jax.vmap(one)(G)
+
+
+def next_configurations(fit, n: int = 10, pool=None, criterion: str = "d_optimal", seed: int = 0,
+                        n_pool: int = 400) -> NextCampaign:
+    """Where to measure next: n configurations of `pool` (default n_pool random ones within the joint limits)
+    chosen one at a time (greedy) to add the most information to what the calibration `fit` already has.
+
+    The information of the estimated parameters is M = J^T J (J: the fit's weighted Jacobian, columns at
+    their typical size, `core.x_scale`), and their covariance s^2 M^-1. A candidate adds its block G_c, computed
+    at the calibrated robot and device with the fit's data weights. "d_optimal" maximises log det (M + sum G)
+    (the volume of the confidence ellipsoid shrinks most); "a_optimal" minimises trace (M + sum G)^-1 (the mean
+    variance in typical units: 1 cm, 0.01 rad, 1 for gains). Returns the predicted standard errors before and
+    after, s^2 from the fit (the residual standard deviation it found)."""
+    from jaxcal.fit.core import x_scale
+    from jaxcal.measure.sessions import Sessions
+
+    if criterion not in CRITERIA:
+        raise ValueError(f"unknown criterion {criterion!r}; expected one of {CRITERIA}")
+    if not fit.estimated:
+        raise ValueError("the calibration estimated no parameter: nothing to plan for")
+    t0 = time.perf_counter()
+    robot = fit.robot
+    device, d = fit.device, np.asarray(fit.device_params, float)
+    if isinstance(device, Sessions):
+        raise ValueError("planning from a calibration with several sessions is not supported: a new campaign brings "
+                         "its own device frame; plan from a one-session calibration")
+    pool = random_configurations(robot, n_pool, seed=seed) if pool is None else np.asarray(pool, float)
+    if pool.ndim != 2 or pool.shape[1] != robot.n_inputs or not 0 < n <= len(pool):
+        raise ValueError(f"pool must be (N >= n = {n}, {robot.n_inputs}) joint vectors, got shape {pool.shape}")
+    sigmas = (fit.info.get("sigma_position", 1e-3), fit.info.get("sigma_orientation", 1e-3))
+    blocks, names, _ = configuration_blocks(robot, device, pool, fit.a, d, sigmas)
+    cols = np.array([fit.names.index(nm) for nm in fit.estimated])
+    scale = x_scale(tuple(robot.units) + tuple(device.units))[cols]
+    J = np.asarray(fit.jacobian)[:, cols] * scale
+    M0 = J.T @ J
+    Wc = blocks[:, :, cols] * scale
+    G = jnp.asarray(np.einsum("kri,krj->kij", Wc, Wc))
+    M, chosen = jnp.asarray(M0), []
+    for _ in range(n):
+        score = np.array(_campaign_scores(M, G, criterion=criterion))
+        score[chosen] = -np.inf
+        best = int(np.argmax(score))
+        chosen.append(best)
+        M = M + G[best]
+    s2 = float(fit.sigma) ** 2 if fit.sigma is not None else 1.0
+    se = lambda A: np.sqrt(np.maximum(np.diag(np.linalg.pinv(A)), 0.0) * s2) * scale  # noqa: E731
+    return NextCampaign(pool[chosen], np.asarray(chosen), criterion, tuple(fit.estimated), se(M0), se(np.asarray(M)),
+                        time.perf_counter() - t0)
+
