@@ -198,7 +198,7 @@ def test_final_all_parameter_stage_frees_parameters_the_base_set_held():
         return float(np.sqrt(np.mean(np.sum((y - y_new) ** 2, axis=1))) * 1e3)
 
     assert error_mm(held.x) > 0.1
-    sol, record = core.polish(problem, held.x, problem.jacobian(held.x), held_est, undetermined, full.no_effect, core.Settings())
+    sol, record = core.polish(problem, held.x, problem.jacobian(held.x), held_est, undetermined, core.Settings())
     assert record["tried"] and record["accepted"] and record["predicted_f_ratio"] > core.POLISH_F
     assert record["f_ratio"] > 10 * core.POLISH_F and sol.converged
     assert error_mm(sol.x) < 0.03

@@ -507,7 +507,7 @@ def _polished_covariance(cal: core.Calibration, r, readings: int, names) -> tupl
     error} of the parameters the stage added). Directions the data cannot determine keep the prior's spread
     (s / sqrt(mu) = 0.1 m or rad, `_covariance`) instead of the tiny error the base-set block gives when the
     held parameters are not at their true values."""
-    added = np.setdiff1d(cal.undetermined, cal.no_effect)
+    added = np.asarray(cal.polish["added_index"], int)  # the held parameters the stage solved (`core.polish`)
     cols = np.sort(np.concatenate([cal.estimated, added]))
     C, _ = _covariance(cal.J[:, cols], core.POLISH_BIAS, cal.problem.x_scale[cols], r, readings)
     pos = np.searchsorted(cols, cal.estimated)
