@@ -57,6 +57,7 @@ SCHEMA = {
     "robot": (_string, "a built-in robot name or a path"),
     "base": (_string, "a link name"),
     "tip": (_string, "a link name"),
+    "tips": (_string_list, "a list of link names"),
     "data": (_string, "a path to a CSV or .xlsx file"),
     "columns": (_string, "a path to a column map (YAML, docs/file-formats.md)"),
     "validation_data": (_string, "a path to a measurement file"),

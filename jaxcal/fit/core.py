@@ -105,6 +105,7 @@ def x_scale(units) -> np.ndarray:
 def readings(robot: Robot, device: Device, a_full, q):
     """Readings (N, ...) the model expects at joint values q (N, n) for the full vector a_full = [robot, device].
     Compiled (robot and device static): called eagerly, the kinematics would run op by op."""
+    device.check_robot(robot)  # at trace time
     nr = robot.n_params
     return jax.vmap(device.read, (0, None))(forward(robot, a_full[:nr], q), a_full[nr:])
 
@@ -487,6 +488,7 @@ def make_problem(robot: Robot, device: Device, q, y, *, weights, free, a_ref, bo
                  model=None, cov=None) -> Problem:
     """A `Problem`: weights (m,) per residual component, optionally times sample_weights (N,); model and cov
     (N, c): a residual model other than the robot measured by the device, and its per-sample covariates."""
+    device.check_robot(robot)
     q, y = np.asarray(q, float), np.asarray(y, float)
     w = np.broadcast_to(np.asarray(weights, float), (len(q), np.size(weights))).copy()
     if sample_weights is not None:

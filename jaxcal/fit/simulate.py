@@ -68,6 +68,7 @@ def simulate(robot, a_true, q, device="position", noise=None, device_params=None
     The returned dataset holds the *recorded* joint values q (without actuator noise).
     """
     dev = as_device(device)
+    dev.check_robot(robot)
     d = dev.nominal if device_params is None else jnp.asarray(device_params, dtype=jnp.float64)
     s_q, s_p, s_r = _noise_levels(noise)
     rng = np.random.default_rng(seed)

@@ -332,12 +332,20 @@ class Prepared:
         return out
 
 
+def axis_labels(device) -> tuple[str, ...]:
+    """Name of each residual component: x, y, z (and rx, ry, rz for a frame); x1, y1, z1, x2, ... for K points."""
+    if device.marker_reading == "points":
+        return tuple(f"{a}{k}" for k in range(1, device.n_points + 1) for a in "xyz")
+    return ("x", "y", "z", "rx", "ry", "rz")[:len(device.residual_components)]
+
+
 def prepare(robot, data: Dataset, folds: int, seed: int, effects) -> Prepared:
     """Validate the inputs; pad q, y and the covariate matrix to `fit.padded_size(n)`; assign folds by
     repeated-pose group (a group stays in one fold)."""
     device = data.device
-    if device.marker_reading not in ("point", "frame"):
-        raise ValueError(f"gap diagnosis needs a position or pose device, got {device.kind!r}")
+    if device.marker_reading not in ("point", "points", "frame"):
+        raise ValueError(f"gap diagnosis needs a position, multi-marker or pose device, got {device.kind!r}")
+    device.check_robot(robot)
     if data.q.shape[1] != robot.n_inputs:
         raise ValueError(f"data has {data.q.shape[1]} joint columns, robot {robot.name!r} has {robot.n_inputs} inputs")
     sessions = session_labels(data)
@@ -792,9 +800,9 @@ def locate(prep: Prepared, base: Baseline, lin: Linear, ho: Heldout, data: Datas
     feats = wh.decompose(ho.oof[s], {k: v[s] for k, v in bases.items()}, tips[s], {k: v[s] for k, v in directions.items()},
                          seed=seed)
     structure_p = float(min(1.0, min(f.p_value for f in feats) * len(feats))) if feats else 1.0
-    labels = ["x", "y", "z", "rx", "ry", "rz"][:m]
+    units = ["mm" if c == "length" else "mrad" for c in model.device.residual_components]
     axis = wh.axis_rms(ho.oof_base * base.sigma[None, :] * 1e3,
-                       [f"{a} ({'mm' if i < 3 else 'mrad'})" for i, a in enumerate(labels)])
+                       [f"{a} ({u})" for a, u in zip(axis_labels(model.device), units)])
     summary = {"axis_rms": axis, "features": [dataclasses.asdict(f) for f in feats_base],
                "features_after": [dataclasses.asdict(f) for f in feats]}
     return Where(summary, structure_p, tips, motion)
@@ -866,7 +874,7 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
                "total_s": time.perf_counter() - t0}
     plot_data = {"q": data.q, "motion": where.motion, "tips": where.tips, "oof_base": ho.oof_base * base.sigma * 1e3,
                  "oof_final": ho.oof * base.sigma * 1e3, "joint_names": jn, "revolute": model.revolute,
-                 "labels": ["x", "y", "z", "rx", "ry", "rz"][:prep.m]}
+                 "labels": list(axis_labels(prep.model.device))}
     return Diagnosis(robot.name, data.device.kind, verdict, joints, sel.ranking, ho.shrink, where.summary, ho.before, ho.after,
                      ho.noise_floor, ho.noise_source, [(s.effect, tuple(jn[j] for j in s.joints)) for s in sel.selected],
                      params, structure_p, not_candidates, prep.n, folds, timings, diverged=fit.diverged,

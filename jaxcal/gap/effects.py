@@ -36,6 +36,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxcal.gap import closed
 from jaxcal.gap.effect import EFFECT_SCALE, get_effect, registered_effects
@@ -91,28 +92,45 @@ def payload_loads(p, o):
     return jnp.cross(p - o, jnp.asarray(G_HAT))
 
 
+def tip_bodies(robot) -> tuple[int, ...]:
+    """Body index of each tool frame the robot is read at: `robot.tips` for a tree read at several bodies, else `tip`."""
+    return tuple(int(t) % len(robot.bodies) for t in (robot.tips or (robot.tip,)))
+
+
+def carried(model: GapModel, tips: tuple[int, ...]) -> np.ndarray:
+    """(n_joints, K) 1.0 where joint j carries tip k (the tip's body is distal to the joint), else 0.0."""
+    return np.array([[1.0 if t in distal else 0.0 for t in tips] for distal in model.distal])
+
+
 def open_tool_pose(model: GapModel, x, q, cov):
-    """Tip pose (R, p) of an open chain with the robot-side effects, for one sample: joint offsets, then the
-    chain, then the gravity rotations dphi_j about the joint axes (o_j, z_j) of everything distal,
-    p' = p + sum_j dphi_j x (p - o_j), R' = exp(sum_j dphi_j) R, then the tool transforms."""
+    """Tip pose (R, p) of an open chain or tree with the robot-side effects, for one sample: joint offsets, then
+    the kinematics, then the gravity rotations dphi_j about the joint axes (o_j, z_j) of everything distal,
+    p_k' = p_k + sum_{j carrying k} dphi_j x (p_k - o_j), R_k' = exp(sum_{j carrying k} dphi_j) R_k, then the tool
+    transforms. A payload sits at every tip; joint j feels the payloads of the tips it carries. A tree read at
+    several bodies returns the stacked (K, 3, 3), (K, 3)."""
     robot = model.robot
     a, e = x[:robot.n_params], x[model.n_geometry:]
     qm = q + joint_offsets(model, e, q, cov)
     F = frames_single(robot, a, joint_variables(robot, a, qm))
-    R, p = F.R[robot.tip], F.p[robot.tip]
+    tips = tip_bodies(robot)
+    R, p = F.R[np.array(tips)], F.p[np.array(tips)]
     gravity, payload = model.acting_on("gravity"), model.acting_on("payload")
     if gravity or payload:
         o, z = joint_axes(model, F)
+        under = jnp.asarray(carried(model, tips))
         dphi = jnp.zeros_like(o)
         if gravity:
             M = gravity_loads(model, F, o)
             dphi = dphi + sum(fx.tool_rotation(params_of(model, e, fx), M, z) for fx in gravity)
         if payload:
-            P = payload_loads(p, o)
+            P = jnp.einsum("jk,kji->ji", under, jax.vmap(payload_loads, (0, None))(p, o))
             dphi = dphi + sum(fx.tool_rotation(params_of(model, e, fx), P, z) for fx in payload)
-        p = p + jnp.sum(jnp.cross(dphi, p - o), axis=0)
-        R = exp_so3(jnp.sum(dphi, axis=0)) @ R
-    return tool_transforms(model, e, R, p, cov)
+        p = p + jnp.einsum("jk,kji->ki", under, jnp.cross(dphi[None], p[:, None] - o[None]))
+        R = jax.vmap(exp_so3)(under.T @ dphi) @ R
+    poses = [tool_transforms(model, e, R[k], p[k], cov) for k in range(len(tips))]
+    if not robot.tips:
+        return poses[0]
+    return jnp.stack([r for r, _ in poses]), jnp.stack([t for _, t in poses])
 
 
 def tool_pose(model: GapModel, x, q, cov):

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.gap import closed
-from jaxcal.gap.effects import gravity_loads, joint_axes, payload_loads, read, residuals
+from jaxcal.gap.effects import carried, gravity_loads, joint_axes, payload_loads, read, residuals, tip_bodies
 from jaxcal.gap.model import GapModel
 from jaxcal.kin.model import frames_single, joint_variables
 
@@ -153,7 +153,9 @@ def moment_norms(x, q, *, model):
     def one(qi):
         F = frames_single(model.robot, a, joint_variables(model.robot, a, qi))
         o, _ = joint_axes(model, F)
-        payload = payload_loads(F.p[model.robot.tip], o)
+        tips = tip_bodies(model.robot)
+        payload = jnp.einsum("jk,kji->ji", jnp.asarray(carried(model, tips)),
+                             jax.vmap(payload_loads, (0, None))(F.p[np.array(tips)], o))
         return jnp.linalg.norm(gravity_loads(model, F, o), axis=1), jnp.linalg.norm(payload, axis=1)
 
     return jax.vmap(one)(q)

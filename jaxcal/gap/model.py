@@ -201,12 +201,14 @@ def reading_effects(model: GapModel, e, y, cov):
 
     if model.device.marker_reading == "point":
         return on_position(y)
+    if model.device.marker_reading == "points":
+        return jax.vmap(on_position)(y)
     if model.device.marker_reading == "frame":
         turns = [r for r in (fx.reading_rotation(theta, c) for fx, theta in zip(fxs, thetas)) if r is not None]
         R = exp_so3(sum(turns)) @ y[:3, :3] if turns else y[:3, :3]
         top = jnp.concatenate([R, on_position(y[:3, 3])[:, None]], axis=1)
         return jnp.concatenate([top, y[3:]], axis=0)
-    raise ValueError(f"gap diagnosis supports position and pose devices, not {model.device.kind!r}")
+    raise ValueError(f"gap diagnosis supports position, multi-marker and pose devices, not {model.device.kind!r}")
 
 
 def input_basis(model: GapModel, q, cov) -> np.ndarray:

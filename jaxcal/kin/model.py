@@ -68,6 +68,19 @@ class Robot:
     coupling_motor: np.ndarray | None = None  # Cm of seed 001 eq 4
     closure: Any = None  # loop-closure description (jaxcal.closure); None for open chains
     extras: dict = dataclasses.field(default_factory=dict)
+    tips: tuple[int, ...] = ()  # a tree read at several bodies: the tool frame of each marker slot (empty: `tip` only)
+
+    def __post_init__(self):
+        if self.tips and self.closure is not None:
+            raise ValueError(f"robot {self.name!r}: several tips (tips=) are for open trees, not closed mechanisms")
+        bad = [t for t in self.tips if not -len(self.bodies) <= t < len(self.bodies)]
+        if bad:
+            raise ValueError(f"robot {self.name!r}: tips {bad} are not body indices (0..{len(self.bodies) - 1})")
+
+    @property
+    def n_tips(self) -> int:
+        """Number of tool frames `forward` returns per sample: len(tips), or 1 for a single tool."""
+        return len(self.tips) or 1
 
     @property
     def nominal(self) -> jnp.ndarray:
@@ -181,6 +194,10 @@ def frames(robot: Robot, a, q) -> Pose:
 
 
 def forward_open(robot: Robot, a, q) -> Pose:
-    """Tool frame of an open (serial or tree) robot for one or a batch of joint inputs."""
+    """Tool frame of an open (serial or tree) robot for one or a batch of joint inputs: (..., 3, 3)/(..., 3), or
+    for a tree read at several bodies (`robot.tips`, K slots) the stacked frames (..., K, 3, 3)/(..., K, 3)."""
     f = frames(robot, a, q)
+    if robot.tips:
+        at = np.asarray(robot.tips)
+        return Pose(f.R[..., at, :, :], f.p[..., at, :])
     return Pose(f.R[..., robot.tip, :, :], f.p[..., robot.tip, :])

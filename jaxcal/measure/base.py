@@ -161,6 +161,14 @@ class Device(abc.ABC):
             nom[self.names.index(k)] = v
         return dataclasses.replace(self, nominal_np=nom)
 
+    def check_robot(self, robot) -> None:
+        """Raise ValueError when a reading cannot be taken from what `forward(robot, ...)` returns: one tool
+        frame, or for a tree read at several bodies (`robot.tips`) one frame per marker slot."""
+        if robot.tips:
+            raise ValueError(f"robot {robot.name!r} is read at {len(robot.tips)} bodies (tips=); the {self.kind} device "
+                             f"reads one tool frame: use make_device('multi_position', points={len(robot.tips)}), "
+                             "marker k on tip k")
+
     # -- the model -------------------------------------------------------------------------------
     @abc.abstractmethod
     def read(self, tip: Pose, d):

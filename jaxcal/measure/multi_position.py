@@ -72,8 +72,15 @@ class MultiPosition(PointSetDevice):
     def residual_components(self) -> tuple[str, ...]:
         return ("length",) * (3 * self.n_points)
 
+    def check_robot(self, robot) -> None:
+        """A tree read at several bodies needs one marker point per tip (point k rides on `robot.tips[k]`)."""
+        if robot.tips and len(robot.tips) != self.n_points:
+            raise ValueError(f"robot {robot.name!r} is read at {len(robot.tips)} bodies (tips=), the multi_position "
+                             f"device has {self.n_points} marker points: give one point per tip")
+
     def read(self, tip, d):
-        """y_k = D^-1 T_tip m_k, m_k = d[6 + 3(k-1) : 9 + 3(k-1)]."""
+        """y_k = D^-1 T_tip m_k, m_k = d[6 + 3(k-1) : 9 + 3(k-1)]; with a stacked tip (K frames, a tree read at
+        several bodies) point k is on frame k."""
         return frame_from_params(d[0:6]).inverse().apply(tip.apply(d[6:].reshape(-1, 3)))
 
 

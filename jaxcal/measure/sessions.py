@@ -101,6 +101,9 @@ class Sessions(Device):
         """The wrapped device's parameter vector in session s."""
         return jnp.asarray(d)[jnp.asarray(self.index[s])]
 
+    def check_robot(self, robot) -> None:
+        self.inner.check_robot(robot)
+
     def read(self, tip, d):
         """The wrapped device's reading in every session's frame, flattened: (sessions * size,)."""
         return jnp.concatenate([self.inner.read(tip, self.session_params(d, s)).reshape(-1) for s in range(self.sessions)])

@@ -278,40 +278,60 @@ def _merge_inertia(parts):
     return {"links": tuple(p[0] for p in parts), "mass": mass, "com": com, "inertia": inertia}
 
 
-def robot_from_urdf(text: str, base: str | None = None, tip: str | None = None, source: str = "<string>",
-                    name: str | None = None) -> Robot:
-    """Robot of the chain from link `base` (default: the root link) to link `tip` (default: the
-    only leaf link) of a URDF text."""
-    model = parse_urdf(text, source)
-    if base is None:
-        roots = sorted(ln.name for ln in model.links if ln.name not in {j.child for j in model.joints})
-        if len(roots) != 1:
-            raise URDFError(f"{source}: give base= (the first link of the chain); the file has {len(roots)} root links, "
-                            f"e.g. {roots[:5]}")
-        base = roots[0]
-    if tip is None:
-        parents = {j.parent for j in model.joints}
-        leaves = sorted(ln.name for ln in model.links if ln.name not in parents)
-        if len(leaves) != 1:
-            raise URDFError(f"{source}: give tip= (the tool link); the file has {len(leaves)} leaf links, e.g. {leaves[:5]}")
-        tip = leaves[0]
-    chain = _chain(model, base, tip, source)
-    link_by_name = {ln.name: ln for ln in model.links}
+def _default_link(model, role: str, source: str) -> str:
+    """The only root (role "base") or leaf (role "tip") link of the file; an error naming a few when there are several."""
+    children, parents = {j.child for j in model.joints}, {j.parent for j in model.joints}
+    found = sorted(ln.name for ln in model.links if ln.name not in (children if role == "base" else parents))
+    if len(found) != 1:
+        what = "first link of the chain" if role == "base" else "tool link"
+        raise URDFError(f"{source}: give {role}= (the {what}); the file has {len(found)} {'root' if role == 'base' else 'leaf'} "
+                        f"links, e.g. {found[:5]}")
+    return found[0]
 
-    groups, pending = [], []  # each group: (fixed joints folded before, the joint that carries the origin)
-    for joint in chain:
-        kind = _joint_type(joint, source)
-        if kind == "fixed":
-            pending.append(joint)
-        else:
-            groups.append((pending, joint))
-            pending = []
-    if pending:
-        groups.append((pending[:-1], pending[-1]))
+
+def tree_groups(chains, tip_links) -> list[tuple[list, object, int]]:
+    """The bodies of the union of `chains` (joint lists from the base): (fixed joints folded before, the joint
+    that carries the origin, index of the parent body or -1), each joint of the union once, parents first.
+
+    Along a chain fixed joints fold into the next moving joint; a fixed joint whose child is a tip link ends
+    a body of its own (as the fixed joints after a chain's last moving joint do), so that a link read as a
+    tip, or passed on the way to another tip, is one body of the tree and its parameters are shared."""
+    groups, body_of = [], {}
+    for chain in chains:
+        pending, parent = [], -1
+        for joint in chain:
+            if _TYPE.get(joint.type) == "fixed" and joint.child not in tip_links:
+                pending.append(joint)
+                continue
+            if joint.name not in body_of:
+                body_of[joint.name] = len(groups)
+                groups.append((pending, joint, parent))
+            pending, parent = [], body_of[joint.name]
+    return groups
+
+
+def robot_from_urdf(text: str, base: str | None = None, tip: str | None = None, source: str = "<string>",
+                    name: str | None = None, tips=None) -> Robot:
+    """Robot of the chain from link `base` (default: the root link) to link `tip` (default: the
+    only leaf link) of a URDF text; or, with `tips=` (link names, a link once per marker read on it),
+    the tree of the chains from `base` to each of them, shared links once (`Robot.tips`: marker slot
+    k rides on body tips[k])."""
+    model = parse_urdf(text, source)
+    if tips is not None and tip is not None:
+        raise URDFError(f"{source}: give tip= (one chain) or tips= (a tree), not both")
+    base = base if base is not None else _default_link(model, "base", source)
+    tip_links = [str(t) for t in tips] if tips is not None else [tip if tip is not None else _default_link(model, "tip", source)]
+    if not tip_links:
+        raise URDFError(f"{source}: tips= names no link")
+    distinct = list(dict.fromkeys(tip_links))
+    chains = [_chain(model, base, t, source) for t in distinct]
+    link_by_name = {ln.name: ln for ln in model.links}
+    groups = tree_groups(chains, set(distinct))
+    ends = {chain[-1].name for chain in chains}
 
     names, values, units, priority, bodies, moving = [], [], [], [], [], []
     body_meta, inertia = [], []
-    for b, (folded, joint) in enumerate(groups):
+    for b, (folded, joint, parent) in enumerate(groups):
         kind = _joint_type(joint, source)
         F = np.eye(4)
         for f in folded:
@@ -325,7 +345,7 @@ def robot_from_urdf(text: str, base: str | None = None, tip: str | None = None, 
             names.append(f"{joint.name}.{field}")
             values.append(float(value))
             units.append("length" if field in ("x", "y", "z") or (field == "offset" and kind == "prismatic") else "angle")
-            priority.append(_priority(field, value, b in (0, len(groups) - 1)))
+            priority.append(_priority(field, value, parent < 0 or joint.name in ends))
         if kind == "fixed":
             rows.append(-1)
         inputs = ()
@@ -333,18 +353,24 @@ def robot_from_urdf(text: str, base: str | None = None, tip: str | None = None, 
             inputs = (len(moving),)
             moving.append((joint, rows[6]))
         axis = _axis(joint, source) if kind != "fixed" else (0.0, 0.0, 1.0)
-        bodies.append(Body(joint.name, "urdf", (kind, axis), b - 1, tuple(rows), inputs))
+        bodies.append(Body(joint.name, "urdf", (kind, axis), parent, tuple(rows), inputs))
         body_meta.append({"joint": joint.name, "folded": tuple(f.name for f in folded), "type": joint.type})
+        chain = next(c for c in chains if joint in c)
         inertia.append(_body_inertia(chain, joint, link_by_name, kind))
 
     joint_names, lo, hi, C = _mimic_coupling(model, moving, values, source)
     home = np.clip(np.zeros(len(lo)), lo, hi)
+    body_index = {g[1].name: b for b, g in enumerate(groups)}
+    tip_bodies = [body_index[_chain(model, base, t, source)[-1].name] for t in tip_links]
+    extras = {"urdf_text": text, "urdf_source": source, "base_link": base, "tip_link": tip_links[0],
+              "urdf_bodies": tuple(body_meta), "inertia": tuple(inertia)}
+    if tips is not None:
+        extras["tip_links"] = tuple(tip_links)
     return Robot(
         name=name or model.name or "urdf", bodies=tuple(bodies), names=tuple(names), nominal_np=np.array(values),
         units=tuple(units), free_mask=np.ones(len(names), bool), priority=np.array(priority),
-        joint_names=tuple(joint_names), home_np=home, q_min=lo, q_max=hi, tip=len(bodies) - 1, coupling_joint=C,
-        extras={"urdf_text": text, "urdf_source": source, "base_link": base, "tip_link": tip,
-                "urdf_bodies": tuple(body_meta), "inertia": tuple(inertia)},
+        joint_names=tuple(joint_names), home_np=home, q_min=lo, q_max=hi, tip=tip_bodies[0], coupling_joint=C,
+        extras=extras, tips=tuple(tip_bodies) if tips is not None and len(tip_links) > 1 else (),
     )
 
 
@@ -417,8 +443,9 @@ def _body_inertia(chain, joint, link_by_name, kind):
     return _merge_inertia(parts)
 
 
-def load_urdf(path: str, base: str | None = None, tip: str | None = None, name: str | None = None) -> Robot:
-    """Robot of the chain from link `base` to link `tip` of a URDF file (see module docstring)."""
+def load_urdf(path: str, base: str | None = None, tip: str | None = None, name: str | None = None, tips=None) -> Robot:
+    """Robot of the chain from link `base` to link `tip`, or of the tree to the links `tips`, of a URDF file
+    (see module docstring and `robot_from_urdf`)."""
     path = str(path)
     raw = read_bytes(path, URDFError)
     try:
@@ -426,7 +453,7 @@ def load_urdf(path: str, base: str | None = None, tip: str | None = None, name: 
     except UnicodeDecodeError as exc:
         line = raw.count(b"\n", 0, exc.start) + 1
         raise URDFError(f"{path}, line {line}: not UTF-8 text (byte 0x{raw[exc.start]:02x})") from None
-    robot = robot_from_urdf(text, base, tip, source=path, name=name)
+    robot = robot_from_urdf(text, base, tip, source=path, name=name, tips=tips)
     robot.extras["urdf_path"] = os.path.realpath(path)
     return robot
 
