@@ -1,4 +1,4 @@
-"""Command line: `jaxcal calibrate | identifiable | simulate | diagnose | bench | demo` (docs/cli.md).
+"""Command line: `jaxcal calibrate | compare | identifiable | simulate | diagnose | cv | bench | demo` (docs/cli.md).
 
 Every subcommand is a function of parsed arguments returning an exit code; bad input (robot
 file, CSV, config, options, an unusable output path, any OS error on them) prints one `error:` line
@@ -50,16 +50,22 @@ def _stage(prog, text):
 
 
 # -- shared loading --------------------------------------------------------------------------------
-def load_robot_arg(spec: str, base=None, tip=None):
-    """A built-in robot name, a robot YAML (seed table, DH table, UR kinematics) or a URDF (with base/tip links)."""
+def load_robot_arg(spec: str, base=None, tip=None, tips=None):
+    """A built-in robot name, a robot YAML (seed table, DH table, UR kinematics) or a URDF (with base/tip links, or
+    base and the tip links of a tree, `tips`, marker k of the data on tips[k])."""
     import jaxcal as jc
+    from jaxcal.config import ConfigError
 
     if spec in jc.robots.builtin.available():
+        if tips:
+            raise ConfigError(f"{spec}: --tips / tips is for URDF robots (the links of a tree read by the markers)")
         return jc.robots.get(spec)
     if not os.path.exists(spec):
         raise FileNotFoundError(f"{spec}: no such robot file, and not a built-in robot ({', '.join(jc.robots.builtin.available())})")
     if spec.lower().endswith(".urdf"):
-        return jc.load_robot(spec, base=base, tip=tip)
+        return jc.load_robot(spec, base=base, tip=tip, tips=tips)
+    if tips:
+        raise ConfigError(f"{spec}: --tips / tips is for URDF robots (the links of a tree read by the markers)")
     return jc.load_robot(spec)
 
 
@@ -105,7 +111,7 @@ def _warn(text) -> None:
 # -- calibrate ---------------------------------------------------------------------------------------
 DEFAULTS = {"holdout": 0.25, "seed": 0, "solver": "lm", "out": "calib-output", "sigma_position": 1e-3,
             "sigma_orientation": 1e-3, "max_steps": 200}
-JOB_KEYS = ("robot", "data", "columns", "validation_data", "verify", "base", "tip", "out", "device", "marker", "joints",
+JOB_KEYS = ("robot", "data", "columns", "validation_data", "verify", "base", "tip", "tips", "out", "device", "marker", "joints",
             "length_unit", "angle_unit", "holdout", "seed", "solver", "free", "known", "sigma_position", "sigma_orientation",
             "max_steps", "rtol", "atol")
 
@@ -194,6 +200,8 @@ def load_data(path, robot, columns=None, joints=None, device=None, marker=None, 
     from jaxcal.config import ConfigError
 
     joints = joints or robot.joint_names
+    if robot.tips and device is None:  # a tree read at several links: all the file's markers, marker k on tips[k]
+        device = "multi_position"
     if not is_table(path, columns):
         return jc.Dataset.from_csv(path, joints=joints, device=device, marker=marker, length_unit=length_unit,
                                    angle_unit=angle_unit, prismatic=prismatic_joints(robot), limits=limits)
@@ -207,12 +215,17 @@ def load_job_data(job, robot):
     """The job's dataset, checked against the robot (joint columns, units against its limits); returns
     (data, warnings): the data warnings (unit doubts, constant joint columns) as strings."""
     from jaxcal.fit.csvfile import DataWarning, constant_columns, joint_limits
+    from jaxcal.fit.data import DataError
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", DataWarning)
         data = load_data(job["data"], robot, job.get("columns"), job.get("joints"), job.get("device"), job.get("marker"),
                          job.get("length_unit"), job.get("angle_unit"), joint_limits(robot))
     found = [str(w.message) for w in caught if issubclass(w.category, DataWarning)]
+    try:
+        data.device.check_robot(robot)
+    except ValueError as exc:
+        raise DataError(f"{job['data']}: {exc}") from None
     for name in constant_columns(data.q, list(data.joint_names or robot.joint_names)):
         found.append(f"{data.source}: joint column {name!r} has the same value in every sample: the data cannot identify "
                      "its offset (it stays at its nominal value)")
@@ -243,18 +256,50 @@ def check_known(known, device) -> None:
             raise UnknownNameError(f"--known / known: {k!r} names no device parameter{suggestion(k, prefixes)}")
 
 
+def check_archive(archive: str | None, out: str) -> None:
+    """The --archive folder is usable and lies outside the output folder (which each run replaces)."""
+    from jaxcal.config import ConfigError
+    from jaxcal.io_atomic import check_writable_dir
+
+    if archive is None:
+        return
+    a, o = os.path.realpath(archive), os.path.realpath(out)
+    if a == o or a.startswith(o + os.sep) or o.startswith(a + os.sep):
+        raise ConfigError(f"--archive {archive}: must lie outside the output folder {out} (and not contain it)")
+    check_writable_dir(archive)
+
+
+def job_inputs(job, config) -> dict:
+    """The job's input files by role (None where not given; a built-in robot name is not a file)."""
+    return {"robot": job["robot"], "data": job["data"], "validation_data": job.get("validation_data"), "config": config,
+            "columns": job.get("columns"), "verify": job.get("verify")}
+
+
+def export_files(robot, kinds) -> dict:
+    """File name -> writer of each --export kind (`jaxcal.robots.exports.export_writers`)."""
+    from jaxcal.io_atomic import safe_filename
+    from jaxcal.robots.exports import export_writers
+
+    return {f"{safe_filename(robot.name)}{suffix}": write for suffix, write in export_writers(robot, kinds).values()}
+
+
 def _calibrate(args) -> int:
+    from datetime import datetime, timezone
+
     from jaxcal.config import ConfigError
     from jaxcal.io_atomic import check_not_input, check_output_dir, cleanup_on_signals
     from jaxcal.report.job import heldout_verdict, run_job, supported_file_name, verify, write_job
+    from jaxcal.report.provenance import archive_run, provenance
     from jaxcal.robots.io import save_robot
 
+    started = datetime.now(timezone.utc)
     try:
         job = job_options(args)
         inputs = [job["robot"], job["data"], args.config, job.get("columns"), job.get("validation_data"), job.get("verify")]
         out = job["out"]
         for name in OUTPUTS:
             check_not_input(os.path.join(out, name), inputs)
+        check_archive(args.archive, out)
         thresholds = load_thresholds(job["verify"]) if job.get("verify") else None
         if thresholds:
             try:  # unknown names and bad values fail before any work
@@ -264,15 +309,17 @@ def _calibrate(args) -> int:
         check_output_dir(out, inputs)  # before any work: a file, unwritable, or holding other files
         with _progress(not args.quiet) as prog:
             with _stage(prog, "loading robot and data"):
-                robot = load_robot_arg(job["robot"], job.get("base"), job.get("tip"))
+                robot = load_robot_arg(job["robot"], job.get("base"), job.get("tip"), job.get("tips"))
                 data, data_warnings = load_job_data(job, robot)
             validation = None
             if job.get("validation_data"):
                 validation, more = load_job_data(dict(job, data=job["validation_data"]), robot)
                 data_warnings = data_warnings + more
             robot_file = calibrated_robot_file(robot)
-            check_not_input(os.path.join(out, robot_file), inputs)
-            check_not_input(os.path.join(out, supported_file_name(robot_file)), inputs)
+            exports = export_files(robot, args.export or ())
+            for name in [robot_file, *exports]:
+                check_not_input(os.path.join(out, name), inputs)
+                check_not_input(os.path.join(out, supported_file_name(name)), inputs)
             check_known(job.get("known") or (), data.device)
             free = expand_free(job.get("free"), robot)
             check_enough_samples(data, job["holdout"])
@@ -286,8 +333,10 @@ def _calibrate(args) -> int:
             add_data_warnings(res.summary, data_warnings)
             if thresholds:
                 res.summary["verdict"] = verify(res.summary, thresholds)
+            res.summary["provenance"] = provenance(job_inputs(job, args.config), job, ["jaxcal", *getattr(args, "argv", [])], started)
             with _stage(prog, f"writing the report to {out}"), cleanup_on_signals():
-                write_job(out, res, lambda path, a: save_robot(robot, path, a), robot_file)
+                write_job(out, res, lambda path, a: save_robot(robot, path, a), robot_file, exports)
+            archived = archive_run(out, args.archive, res.summary) if args.archive else None
     except _input_errors() as exc:
         return _fail(exc)
     r = res.summary["rms"]
@@ -300,6 +349,8 @@ def _calibrate(args) -> int:
     if verdict:
         print(verdict)
     print(f"report: {os.path.join(out, 'report.md')}; calibrated robot: {os.path.join(out, robot_file)}")
+    if archived:
+        print(f"archived: {archived}")
     verdict = res.summary.get("verdict")
     if verdict is not None:
         failed = [c["check"] for c in verdict["checks"] if not c["pass"]]
@@ -359,6 +410,45 @@ def calibrated_robot_file(robot) -> str:
     return f"{safe_filename(robot.name)}_calibrated.{fmt}"
 
 
+# -- compare ------------------------------------------------------------------------------------------
+def load_results(folder: str) -> dict:
+    """results.json of a `jaxcal calibrate` output folder; errors name the file."""
+    import json
+
+    from jaxcal.config import ConfigError
+
+    path = os.path.join(folder, "results.json")
+    if not os.path.isfile(path):
+        raise ConfigError(f"{path}: no such file ({folder} is not a `jaxcal calibrate` output folder)")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            doc = json.load(fh)
+    except ValueError as exc:
+        raise ConfigError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("robot"), str) or not isinstance(doc.get("parameters"), list):
+        raise ConfigError(f"{path}: not the results of `jaxcal calibrate` (no 'robot' or 'parameters')")
+    return doc
+
+
+def _compare(args) -> int:
+    from jaxcal.config import ConfigError
+    from jaxcal.io_atomic import check_output_file, write_text_atomic
+    from jaxcal.report.html import compare_html
+
+    try:
+        check_output_file(args.out, "--out file")
+        a, b = load_results(args.run_a), load_results(args.run_b)
+        if a["robot"] != b["robot"]:
+            raise ConfigError(f"{os.path.join(args.run_b, 'results.json')}: robot {b['robot']!r}, but "
+                              f"{os.path.join(args.run_a, 'results.json')} is of robot {a['robot']!r}: runs of different "
+                              "robots cannot be compared")
+        write_text_atomic(args.out, compare_html(a, b, args.run_a, args.run_b))
+    except _input_errors() as exc:
+        return _fail(exc)
+    print(f"comparison of {args.run_a} and {args.run_b}: {args.out}")
+    return 0
+
+
 # -- identifiable --------------------------------------------------------------------------------------
 def _identifiable(args) -> int:
     import jaxcal as jc
@@ -367,7 +457,7 @@ def _identifiable(args) -> int:
     try:
         if args.json:
             check_output_file(args.json, "--json file")
-        robot = load_robot_arg(args.robot, args.base, args.tip)
+        robot = load_robot_arg(args.robot, args.base, args.tip, getattr(args, "tips", None))
         with _progress(not args.quiet) as prog, _stage(prog, f"observation matrix of {args.method} ({args.n} samples)"):
             res = jc.identifiable(robot, args.method, n_configs=args.n, seed=args.seed, include_gains=not args.no_gains)
     except _input_errors() + (ValueError,) as exc:
@@ -399,7 +489,7 @@ def _simulate(args) -> int:
         check_output_file(args.out, "--out file")
         if args.truth:
             check_output_file(args.truth, "--truth file")
-        robot = load_robot_arg(args.robot, args.base, args.tip)
+        robot = load_robot_arg(args.robot, args.base, args.tip, getattr(args, "tips", None))
         check_not_input(args.out, [args.robot])
         if args.truth:
             check_not_input(args.truth, [args.robot])
@@ -432,7 +522,7 @@ def _diagnose(args) -> int:
         return 1
     try:
         check_writable_dir(args.out)
-        robot = load_robot_arg(args.robot, args.base, args.tip)
+        robot = load_robot_arg(args.robot, args.base, args.tip, getattr(args, "tips", None))
         data = load_data(args.data, robot, args.columns, device=args.device, marker=args.marker,
                          length_unit=args.length_unit, angle_unit=args.angle_unit)
         check_not_input(os.path.join(args.out, "diagnosis.json"), [args.robot, args.data, args.columns])
@@ -458,7 +548,7 @@ def _cv(args) -> int:
     try:
         if args.json:
             check_output_file(args.json, "--json file")
-        robot = load_robot_arg(args.robot, args.base, args.tip)
+        robot = load_robot_arg(args.robot, args.base, args.tip, getattr(args, "tips", None))
         data = load_data(args.data, robot, args.columns, device=args.device, marker=args.marker,
                          length_unit=args.length_unit, angle_unit=args.angle_unit)
         if args.json:
@@ -565,6 +655,8 @@ def _robot_args(p):
     p.add_argument("robot", help="built-in robot name, robot YAML or URDF")
     p.add_argument("--base", help="URDF: first link of the chain")
     p.add_argument("--tip", help="URDF: last link of the chain")
+    p.add_argument("--tips", nargs="+", metavar="LINK", help="URDF: the links of a tree read by markers 1, 2, ... of the data "
+                   "(a link once per marker on it; shared links are estimated once)")
 
 
 def _solver_args(p, solver_default="lm", max_steps_default=200, max_steps_help="200"):
@@ -623,6 +715,17 @@ fraction = _number_type(float, lambda v: 0 <= v < 1, "a number in [0, 1)")
 folds_int = _number_type(int, lambda v: v >= 2, "an integer >= 2")
 
 
+def export_kinds(text: str) -> tuple[str, ...]:
+    """An argparse type: a comma-separated list of `jaxcal.robots.exports.EXPORT_KINDS`."""
+    from jaxcal.robots.exports import EXPORT_KINDS
+
+    kinds = tuple(k.strip() for k in text.split(",") if k.strip())
+    bad = [k for k in kinds if k not in EXPORT_KINDS]
+    if bad or not kinds:
+        raise argparse.ArgumentTypeError(f"expected a comma-separated list of {', '.join(EXPORT_KINDS)}, got {text!r}")
+    return tuple(dict.fromkeys(kinds))
+
+
 def cache_folder(option: str | None, no_cache: bool, env: str | None) -> str | None:
     """Where the command keeps compiled code: --cache DIR, else none with --no-cache or JAXCAL_CACHE=0,
     else JAXCAL_CACHE's folder, else the default folder (the cache is safe to share: jaxcal.xla_cache)."""
@@ -653,6 +756,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "require_health_ok); writes verdict.json and exits 1 on FAIL")
     c.add_argument("--base", help="URDF: first link of the chain")
     c.add_argument("--tip", help="URDF: last link of the chain")
+    c.add_argument("--tips", nargs="+", metavar="LINK", help="URDF: the links of a tree read by markers 1, 2, ... of the data "
+                   "(a link once per marker on it; shared links are estimated once)")
     c.add_argument("--out", help="output folder (default calib-output)")
     _data_args(c)
     c.add_argument("--holdout", type=fraction, help="fraction of samples held out of the fit (default 0.25)")
@@ -665,8 +770,19 @@ def build_parser() -> argparse.ArgumentParser:
     _solver_args(c, None, None)  # defaults from the job file, else DEFAULTS
     c.add_argument("--accept-warnings", dest="accept_warnings", action="store_true",
                    help="exit 0 even when the result carries health warnings (default: exit 1)")
+    c.add_argument("--export", type=export_kinds, metavar="KINDS", help="more robot files, each also in a >= 2 sigma "
+                   "variant (URDF robots): urdf-rising (joint offsets in <calibration rising> tags), pal-yaml (PAL's "
+                   "calibration YAML); comma-separated")
+    c.add_argument("--archive", metavar="DIR", help="also copy the finished output folder to DIR/<UTC time>-<config hash>/ "
+                   "and add a line to DIR/index.jsonl")
     _quiet(c)
     c.set_defaults(func=_calibrate)
+
+    k = sub.add_parser("compare", help="compare two calibration runs (output folders): RMS and parameter differences as HTML")
+    k.add_argument("run_a", metavar="RUN_A", help="output folder of a `jaxcal calibrate` run")
+    k.add_argument("run_b", metavar="RUN_B", help="output folder of another run of the same robot")
+    k.add_argument("--out", default="compare.html", help="HTML file to write (default compare.html)")
+    k.set_defaults(func=_compare)
 
     i = sub.add_parser("identifiable", help="identifiable parameters of a robot for a calibration method (GECARO §3)")
     _robot_args(i)
@@ -750,6 +866,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
+        args.argv = list(sys.argv[1:] if argv is None else argv)
     except SystemExit as exc:  # a bad option: one `error:` line printed, exit code 2 returned (--help still exits)
         if not exc.code:
             raise

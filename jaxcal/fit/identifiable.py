@@ -58,16 +58,21 @@ class Identifiable:
 
 
 def observability_indices(Wb) -> dict:
-    """Menq-Borm O1, minimum singular value, condition number, noise amplification index."""
+    """Observability indices of Sun & Hollerbach (2008) from the singular values s_1 >= ... >= s_b of the
+    m x b matrix Wb: "O1" Menq-Borm (s_1 ... s_b)^(1/b) / sqrt(m), "O2" inverse condition s_b / s_1, "O3" minimum
+    singular value s_b, "O4" noise amplification s_b^2 / s_1, "O5" 1 / sum_i 1/s_i; also under the names
+    menq_borm, condition (s_1 / s_b), min_singular and noise_amplification."""
     Wb = np.asarray(Wb, float)
     s = np.linalg.svd(Wb, compute_uv=False)
     m, b = Wb.shape
-    return {
+    named = {
         "menq_borm": float(np.exp(np.mean(np.log(s))) / np.sqrt(m)),
         "min_singular": float(s[-1]),
         "condition": float(s[0] / s[-1]),
         "noise_amplification": float(s[-1] ** 2 / s[0]),
     }
+    return dict(named, O1=named["menq_borm"], O2=float(s[-1] / s[0]), O3=named["min_singular"],
+                O4=named["noise_amplification"], O5=float(1.0 / np.sum(1.0 / s)))
 
 
 def _priority(robot: Robot, priority, include_gains):

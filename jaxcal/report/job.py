@@ -22,8 +22,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from jaxcal.fit.core import x_scale  # noqa: E402
+from jaxcal.fit.identifiable import observability_indices  # noqa: E402
 from jaxcal.fit.identify import identify  # noqa: E402
 from jaxcal.io_atomic import replace_folder, write_json_atomic, write_text_atomic  # noqa: E402
+from jaxcal.report.html import markdown_body, report_html  # noqa: E402
 from jaxcal.report.plots import plain_text, plot_convergence, save_atomic  # noqa: E402
 
 
@@ -58,8 +60,9 @@ def identifiability_summary(fit) -> dict:
         Js = np.asarray(fit.jacobian)[:, idx] * x_scale(units)[idx]
         s = np.linalg.svd(Js, compute_uv=False)
         cond = float(s[0] / max(s[-1], 1e-300))
+        observability = observability_indices(Js) if s[-1] > 0 else None
     else:
-        cond = None
+        cond = observability = None
     return {
         "free": int(len(fit.estimated) + len(fit.undetermined)),
         "estimated": len(fit.estimated),
@@ -68,6 +71,7 @@ def identifiability_summary(fit) -> dict:
         "regrouped": list(fit.regrouped),
         "no_effect": list(fit.no_effect),
         "condition_number_scaled": cond,
+        "observability": observability,
         "poorly_determined": [n for n in fit.poorly_determined() if n not in fit.undetermined],
         "weak_directions": [{"sigma": s_, "direction": d} for s_, d in fit.weak_directions],
     }
@@ -124,7 +128,8 @@ def supported_summary(robot, fit, train, test, identify_kw):
     kw = {k: v for k, v in identify_kw.items() if k not in ("free", "progress")}
     refit = identify(robot, train, free=(), a0=a, **kw)
     return a, {"sigma": SUPPORTED_SIGMA, "kept": kept, "dropped": dropped, "train": _rms_of(refit, train),
-               "heldout": _rms_of(refit, test)}
+               "heldout": _rms_of(refit, test),
+               "device_params": dict(zip(refit.device.names, np.asarray(refit.device_params).tolist()))}
 
 
 def run_job(robot, data, holdout: float = 0.25, seed: int = 0, history: bool = True, validation=None,
@@ -372,6 +377,10 @@ def job_markdown(summary, images: dict, robot_file: str | None) -> str:
     lines += ["## Identifiability", "",
               f"{ident['estimated']} of {ident['free']} free parameters identified (base set of the weighted Jacobian's "
               f"columns, seed 001 App. III); scaled condition number {_fmt(ident['condition_number_scaled'], '.3g')}.", ""]
+    if ident.get("observability"):
+        lines.append("Observability indices of the scaled Jacobian (Sun & Hollerbach): " + ", ".join(
+            f"{k} {ident['observability'][k]:.4g}" for k in ("O1", "O2", "O3", "O4", "O5")) + ".")
+        lines.append("")
     if ident["undetermined"]:
         lines.append(f"Not separable from the others (kept at their prior): {', '.join(map(md_text, ident['undetermined']))}.")
     if ident.get("held_at_start"):
@@ -442,9 +451,7 @@ _CSS = ("body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;
 def job_html(markdown_text: str, title: str) -> str:
     """The Markdown report as one self-contained HTML page (images stay beside it), rendered with
     markdown-it-py (a dependency of rich) with raw HTML off: any tag in the text is shown, never run."""
-    from markdown_it import MarkdownIt
-
-    body = MarkdownIt("commonmark", {"html": False}).enable("table").render(markdown_text)
+    body = markdown_body(markdown_text)
     title = html.escape(_one_line(title))
     return (f"<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>{title}</title><style>{_CSS}</style></head>"
             f"<body>\n{body}</body></html>\n")
@@ -456,23 +463,39 @@ def supported_file_name(robot_file: str) -> str:
     return f"{stem}_{SUPPORTED_SIGMA:g}sigma{ext}"
 
 
-def write_job(out: str, job: JobResult, write_robot=None, robot_file: str | None = None) -> list[str]:
-    """Write results.json, report.md, report.html, the plots, verdict.json (after `--verify`) and, via
-    `write_robot(path, a)`, the calibrated robot and the robot with only the supported corrections
-    (`supported_file_name(robot_file)`).
+def write_job(out: str, job: JobResult, write_robot=None, robot_file: str | None = None, exports=None) -> list[str]:
+    """Write results.json, report.md, report.html (interactive, `jaxcal.report.html.report_html`), the plots,
+    verdict.json (after `--verify`) and, via `write_robot(path, a)`, the calibrated robot and the robot with only
+    the supported corrections (`supported_file_name(robot_file)`). `exports` maps more plain file names to
+    `write(path, a, device_params)` (`jaxcal.robots.exports.export_writers`): each is written for the calibration
+    and, under `supported_file_name(name)`, for the supported corrections with their refitted device frame.
 
     Everything is first written to a hidden staging folder beside `out` and swapped in as `out` only
     when all files exist (`jaxcal.io_atomic.replace_folder`): a failure leaves `out` as it was (the
     staging folder is removed), and files of an earlier run that this one does not write are gone.
     `robot_file` must be a plain file name (`jaxcal.io_atomic.safe_filename`)."""
-    if robot_file is not None and (os.path.basename(robot_file) != robot_file or robot_file.startswith(".")):
-        raise ValueError(f"robot_file must be a plain file name, got {robot_file!r}")
+    for name in [robot_file] + list(exports or ()):
+        if name is not None and (os.path.basename(name) != name or name.startswith(".")):
+            raise ValueError(f"output file names must be plain file names, got {name!r}")
     os.makedirs(out, exist_ok=True)
-    names = replace_folder(out, lambda stage: _write_all(stage, job, write_robot, robot_file))
+    names = replace_folder(out, lambda stage: _write_all(stage, job, write_robot, robot_file, exports or {}))
     return [os.path.join(out, n) for n in names]
 
 
-def _write_all(folder, job, write_robot, robot_file):
+def _write_exports(folder, job, exports) -> list[str]:
+    """The `exports` files of `write_job` for the calibration and for the supported corrections; their names."""
+    names = []
+    sup = job.summary.get("supported") or {}
+    for name, write in exports.items():
+        write(os.path.join(folder, name), np.asarray(job.fit.a), job.summary["device_params"]["calibrated"])
+        names.append(name)
+        if job.supported_a is not None and "device_params" in sup:
+            write(os.path.join(folder, supported_file_name(name)), job.supported_a, sup["device_params"])
+            names.append(supported_file_name(name))
+    return names
+
+
+def _write_all(folder, job, write_robot, robot_file, exports):
     images = {"Error per pose": "errors_per_pose.png", "Error over the workspace": "error_map.png",
               "Convergence": "convergence.png"}
     plot_errors_per_pose(job.summary, os.path.join(folder, images["Error per pose"]))
@@ -491,6 +514,7 @@ def _write_all(folder, job, write_robot, robot_file):
             extra["supported_file"] = supported_file_name(robot_file)
             os.chmod(write_robot(os.path.join(folder, extra["supported_file"]), job.supported_a), 0o644)
             names.append(extra["supported_file"])
+    names += _write_exports(folder, job, exports)
     if "verdict" in job.summary:
         write_json_atomic(os.path.join(folder, "verdict.json"), job.summary["verdict"])
         names.append("verdict.json")
@@ -498,7 +522,7 @@ def _write_all(folder, job, write_robot, robot_file):
     summary = dict(job.summary, files=names, **extra)
     text = job_markdown(summary, images, robot_file)
     write_text_atomic(os.path.join(folder, "report.md"), text)
-    write_text_atomic(os.path.join(folder, "report.html"), job_html(text, f"Calibration report: {summary['robot']}"))
+    write_text_atomic(os.path.join(folder, "report.html"), report_html(summary, text))
     write_json_atomic(os.path.join(folder, "results.json"), summary)
     return names
 
