@@ -288,7 +288,7 @@ def _calibrate(args) -> int:
 
     from jaxcal.config import ConfigError
     from jaxcal.io_atomic import check_not_input, check_output_dir, cleanup_on_signals
-    from jaxcal.report.job import heldout_verdict, run_job, supported_file_name, verify, write_job
+    from jaxcal.report.job import heldout_verdict, quality_lines, run_job, supported_file_name, verify, write_job
     from jaxcal.report.provenance import archive_run, provenance
     from jaxcal.robots.io import save_robot
 
@@ -345,6 +345,8 @@ def _calibrate(args) -> int:
         h = r["heldout"]["position_mm"]
         print(f"held-out ({res.summary['samples']['heldout']} samples): position RMS {h['before']:.4g} mm (nominal) -> "
               f"{h['after']:.4g} mm (calibrated)")
+    for line in quality_lines(res.summary["quality"]):
+        print(line)
     verdict = heldout_verdict(res.summary)
     if verdict:
         print(verdict)

@@ -263,13 +263,39 @@ def test_quality_rows_health_and_verdict():
     s["validation"] = {"samples": 7, "before": {"position_mm": 3.0}, "after": {"position_mm": 0.4}}
     s["identifiability"] = {"estimated": 2, "free": 5, "condition_number_scaled": 12.5,
                             "observability": observability_indices(np.diag([3.0, 1.0]))}
-    s["quality"] = {"r2": 0.99, "correlated_pairs": [["p.x", "p.y", 0.93]]}
+    s["quality"] = {"per_axis": {"heldout": {"x": {"rmse_mm": 0.2, "r2": 0.999999}}}, "correlation_threshold": 0.8,
+                    "correlated_pairs": [{"a": "p.x", "b": "p.y", "rho": 0.93}]}
     rows = {r[0]: r[1:] for r in rh.quality_rows(s)}
     assert rows["held-out RMS position [mm]"] == [2.0, 0.3] and rows["held-out RMS orientation [mrad]"] == [4.0, 0.5]
     assert rows["validation RMS position [mm] (7 samples)"] == [3.0, 0.4] and rows["estimated / free parameters"][1] == "2 / 5"
     assert rows["observability O5"][1] == pytest.approx(0.75) and not any("menq" in k for k in rows)
-    assert rows["r2"][1] == 0.99 and rows["correlated_pairs"][1] == '[["p.x", "p.y", 0.93]]'
+    assert rows["held-out RMSE x [mm] (R\u00b2 0.999999)"][1] == 0.2
+    assert rows["parameter pairs with |rho| > 0.8"][1] == "1: p.x ~ p.y +0.930"
     s.update(health={"ok": False, "warnings": ["w1", "w2"]},
              verdict={"pass": False, "checks": [{"check": "max_heldout_rms_mm", "value": 0.3, "threshold": 0.1, "pass": False}]})
     page = rh.report_html(s, "")
     assert "2 warning(s)" in page and "<li>w2</li>" in page and "<p id='verdict' class='bad'>FAIL</p>" in page
+
+
+# ---- the quality summary (per-axis RMSE, R^2, correlated pairs) -------------------------------------------------------
+def test_quality_summary_against_hand_values():
+    """A stand-in fit whose predictions miss by (1, -2, 0) mm on x, y, z: RMSE 1, 2, 0 mm and R^2 from the spread
+    of the readings; a covariance with rho(a, c) = 0.9 and rho(a, b) = 0.5 lists only (a, c)."""
+    from types import SimpleNamespace
+
+    from jaxcal.report.job import axis_quality, correlated_pairs, quality_lines
+
+    y = np.array([[0.0, 0.0, 0.0], [0.01, 0.02, 0.0], [0.02, 0.04, 0.0], [0.03, 0.06, 0.0]])
+    data = jc.Dataset(q=np.zeros((4, 6)), y=y, device="position")
+    miss = np.array([1e-3, -2e-3, 0.0])
+    fit = SimpleNamespace(device=data.device, predict=lambda q: y - miss)
+    q = axis_quality(fit, data)
+    assert np.isclose(q["x"]["rmse_mm"], 1.0) and np.isclose(q["y"]["rmse_mm"], 2.0) and q["z"]["rmse_mm"] == 0.0
+    ss_x = np.sum((y[:, 0] - y[:, 0].mean()) ** 2)
+    assert np.isclose(q["x"]["r2"], 1 - 4 * 1e-6 / ss_x) and q["z"]["r2"] is None  # z never moves: R^2 undefined
+    sd = np.array([1.0, 2.0, 3.0])
+    rho = np.array([[1.0, 0.5, 0.9], [0.5, 1.0, 0.0], [0.9, 0.0, 1.0]])
+    cov_fit = SimpleNamespace(covariance=rho * np.outer(sd, sd), estimated=("a", "b", "c"))
+    assert correlated_pairs(cov_fit) == [{"a": "a", "b": "c", "rho": pytest.approx(0.9)}]
+    lines = quality_lines({"per_axis": {"heldout": q}, "correlated_pairs": correlated_pairs(cov_fit), "correlation_threshold": 0.8})
+    assert lines[0].startswith("held-out per axis: x 1 mm") and "a ~ c +0.900" in lines[1]

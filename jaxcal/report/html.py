@@ -272,8 +272,16 @@ def quality_rows(summary: dict) -> list[list]:
     for key, value in (ident.get("observability") or {}).items():
         if key.startswith("O"):
             rows.append([f"observability {key}", BLANK, value])
-    for key, value in (summary.get("quality") or {}).items():
-        rows.append([str(key), BLANK, value if isinstance(value, (int, float)) else json.dumps(value, default=str)])
+    quality = summary.get("quality") or {}
+    for split, axes in (quality.get("per_axis") or {}).items():
+        label = "held-out" if split == "heldout" else "training"
+        for axis, v in axes.items():
+            rows.append([f"{label} RMSE {axis} [mm] (R\u00b2 {fmt(v.get('r2'), '.8g')})", BLANK, v.get("rmse_mm")])
+    if "correlated_pairs" in quality:
+        pairs = quality["correlated_pairs"]
+        shown = "; ".join(f"{p['a']} ~ {p['b']} {p['rho']:+.3f}" for p in pairs[:6]) + (" ..." if len(pairs) > 6 else "")
+        rows.append([f"parameter pairs with |rho| > {quality.get('correlation_threshold', 0.8):g}", BLANK,
+                     f"{len(pairs)}" + (f": {shown}" if pairs else "")])
     return rows
 
 

@@ -24,6 +24,7 @@ import numpy as np  # noqa: E402
 from jaxcal.fit.core import x_scale  # noqa: E402
 from jaxcal.fit.identifiable import observability_indices  # noqa: E402
 from jaxcal.fit.identify import identify  # noqa: E402
+from jaxcal.fit.sessions import readings_for  # noqa: E402
 from jaxcal.io_atomic import replace_folder, write_json_atomic, write_text_atomic  # noqa: E402
 from jaxcal.report.html import markdown_body, report_html  # noqa: E402
 from jaxcal.report.plots import plain_text, plot_convergence, save_atomic  # noqa: E402
@@ -132,6 +133,67 @@ def supported_summary(robot, fit, train, test, identify_kw):
                "device_params": dict(zip(refit.device.names, np.asarray(refit.device_params).tolist()))}
 
 
+CORRELATED = 0.8  # |rho| above which a parameter pair is listed (FIGAROH's quality report uses the same)
+
+
+def axis_quality(fit, data) -> dict | None:
+    """Per position axis of the readings (x, y, z; marker k of several: x1 ... z_K): RMSE (mm) of the calibrated
+    model and R^2 = 1 - sum r^2 / sum (y - mean y)^2; None for a device whose readings hold no point, and for
+    several sessions (each has its own frame)."""
+    device = fit.device
+    if device.marker_reading not in ("point", "points", "frame") or len(data) == 0:  # sessions: one frame each
+        return None
+    meas = device.points(readings_for(device, data))
+    pred = device.points(fit.predict(data.q))
+    r, y = (meas - pred).reshape(len(data), -1), meas.reshape(len(data), -1)
+    k = y.shape[1] // 3
+    labels = [f"{a}{i + 1 if k > 1 else ''}" for i in range(k) for a in "xyz"]
+    ss_tot = np.sum((y - y.mean(axis=0)) ** 2, axis=0)
+    return {lab: {"rmse_mm": float(np.sqrt(np.mean(r[:, j] ** 2)) * 1e3),
+                  "r2": float(1.0 - np.sum(r[:, j] ** 2) / ss_tot[j]) if ss_tot[j] > 0 else None}
+            for j, lab in enumerate(labels)}
+
+
+def correlated_pairs(fit, threshold: float = CORRELATED) -> list[dict]:
+    """Pairs of estimated parameters whose estimates correlate with |rho| > threshold (from the fit's
+    covariance), strongest first."""
+    if fit.covariance is None:
+        return []
+    C = np.asarray(fit.covariance)
+    sd = np.sqrt(np.maximum(np.diag(C), 1e-300))
+    rho = C / np.outer(sd, sd)
+    i, j = np.triu_indices(len(sd), 1)
+    keep = np.abs(rho[i, j]) > threshold
+    pairs = [{"a": fit.estimated[a], "b": fit.estimated[b], "rho": float(rho[a, b])} for a, b in zip(i[keep], j[keep])]
+    return sorted(pairs, key=lambda p: -abs(p["rho"]))
+
+
+def quality_summary(fit, train, test) -> dict:
+    """FIGAROH's quality report: per-axis RMSE and R^2 on the training and held-out samples, and the correlated
+    parameter pairs."""
+    out = {"per_axis": {split: axis_quality(fit, d) for split, d in (("train", train), ("heldout", test)) if d is not None},
+           "correlated_pairs": correlated_pairs(fit), "correlation_threshold": CORRELATED}
+    out["per_axis"] = {k: v for k, v in out["per_axis"].items() if v is not None}
+    return out
+
+
+def quality_lines(quality: dict, limit: int = 8) -> list[str]:
+    """The quality block as terminal lines."""
+    lines = []
+    for split, axes in quality.get("per_axis", {}).items():
+        cells = ", ".join(f"{a} {v['rmse_mm']:.4g} mm" + (f" (R^2 {v['r2']:.8g})" if v["r2"] is not None else "")
+                          for a, v in axes.items())
+        lines.append(f"{'held-out' if split == 'heldout' else 'training'} per axis: {cells}")
+    pairs = quality.get("correlated_pairs", [])
+    if pairs:
+        shown = ", ".join(f"{p['a']} ~ {p['b']} {p['rho']:+.3f}" for p in pairs[:limit])
+        more = f" (+{len(pairs) - limit} more in results.json)" if len(pairs) > limit else ""
+        lines.append(f"correlated parameter pairs (|rho| > {quality['correlation_threshold']:g}): {shown}{more}")
+    else:
+        lines.append(f"no estimated parameter pair correlates with |rho| > {quality.get('correlation_threshold', CORRELATED):g}")
+    return lines
+
+
 def run_job(robot, data, holdout: float = 0.25, seed: int = 0, history: bool = True, validation=None,
             **identify_kw) -> JobResult:
     """Fit `robot` on a random (1 - holdout) share of `data`; evaluate both the calibrated and the
@@ -165,6 +227,7 @@ def run_job(robot, data, holdout: float = 0.25, seed: int = 0, history: bool = T
                                          "after": None if v[1][0] is None else v[1][0].tolist()} for split, v in errs.items()},
     }
     summary["sessions"] = fit.info.get("sessions", [])
+    summary["quality"] = quality_summary(fit, train, test)
     if validation is not None:
         summary["validation"] = {"data": validation.source, "samples": len(validation),
                                  "before": _rms_of(nominal, validation), "after": _rms_of(fit, validation)}
@@ -373,6 +436,8 @@ def job_markdown(summary, images: dict, robot_file: str | None) -> str:
               f"compile {t.get('compile_s', 0):.2f} s, run {t.get('run_s', 0) * 1e3:.1f} ms.", ""]
     lines += session_markdown(summary.get("sessions", []))
     lines += validation_markdown(summary.get("validation"))
+    if summary.get("quality"):
+        lines += ["## Quality", ""] + [f"- {md_text(line)}" for line in quality_lines(summary["quality"], limit=20)] + [""]
     ident = summary["identifiability"]
     lines += ["## Identifiability", "",
               f"{ident['estimated']} of {ident['free']} free parameters identified (base set of the weighted Jacobian's "
@@ -527,5 +592,6 @@ def _write_all(folder, job, write_robot, robot_file, exports):
     return names
 
 
-__all__ = ["JobResult", "identifiability_summary", "job_markdown", "md_code", "md_text", "parameter_rows", "plot_error_map",
-           "plot_errors_per_pose", "job_html", "run_job", "supported_corrections", "verify", "write_job"]
+__all__ = ["JobResult", "axis_quality", "correlated_pairs", "identifiability_summary", "job_html", "job_markdown", "md_code",
+           "md_text", "parameter_rows", "plot_error_map", "plot_errors_per_pose", "quality_lines", "quality_summary", "run_job",
+           "supported_corrections", "verify", "write_job"]
