@@ -130,3 +130,32 @@ def test_unit_mistakes_are_detected(tmp_path):
     path = _position_csv(tmp_path, q * 1e-3, p, comment="# units: angle=deg")
     with pytest.warns(jc.fit.data.UnitWarning, match="radians given as degrees"):
         jc.Dataset.from_csv(path)
+
+
+@pytest.mark.parametrize("kind,columns", [("theodolite", ("azimuth", "elevation")),
+                                          ("theodolite_range", ("azimuth", "elevation", "range")),
+                                          ("laser_range", ("range",))])
+def test_instrument_readings_round_trip_in_mm_and_deg(tmp_path, kind, columns):
+    """Sight angles and ranges are written in the file's angle / length unit, one column each, and read back
+    exactly; a range given in mm to a file said to be in m is an error naming its line."""
+    rng = np.random.default_rng(0)
+    y = np.column_stack([rng.uniform(-1.0, 1.0, 5) if c != "range" else rng.uniform(1.5, 4.0, 5) for c in columns])
+    data = jc.Dataset(q=rng.uniform(-1, 1, (5, 6)), y=y, device=kind, joint_names=[f"j{i}" for i in range(1, 7)])
+    path = tmp_path / f"{kind}.csv"
+    data.to_csv(path, length_unit="mm", angle_unit="deg")
+    assert open(path).read().splitlines()[1].split(",")[6:] == list(columns)
+    back = jc.Dataset.from_csv(path, device=kind)
+    assert np.allclose(back.y, y, rtol=0, atol=1e-14) and np.allclose(back.q, data.q, rtol=0, atol=1e-14)
+    if "range" in columns:
+        text = open(path).read().replace("length=mm", "length=m")
+        (tmp_path / "metres.csv").write_text(text)
+        with pytest.raises(jc.DataError, match=r"metres\.csv, line 3.*'range'.*millimetres given as metres"):
+            jc.Dataset.from_csv(tmp_path / "metres.csv", device=kind)
+
+
+def test_markers_of_a_multi_position_dataset_round_trip(tmp_path):
+    y = np.random.default_rng(1).uniform(-1, 1, (4, 2, 3))
+    data = jc.Dataset(q=np.zeros((4, 3)), y=y, device="multi_position", joint_names=["a", "b", "c"])
+    data.to_csv(tmp_path / "m.csv", length_unit="mm")
+    assert open(tmp_path / "m.csv").read().splitlines()[1] == "a,b,c,x1,y1,z1,x2,y2,z2"
+    assert np.allclose(jc.Dataset.from_csv(tmp_path / "m.csv", device="multi_position").y, y, rtol=0, atol=1e-15)

@@ -15,7 +15,19 @@ def python_blocks(path: str) -> list[str]:
         return BLOCK.findall(fh.read())
 
 
-@pytest.mark.parametrize("page", sorted(p for p in os.listdir(TUTORIALS) if p.endswith(".md")))
+SLOW = "<!-- test: slow -->"  # a page with this line runs with the slow tests only (`make test-all`)
+
+
+def _pages():
+    pages = []
+    for page in sorted(p for p in os.listdir(TUTORIALS) if p.endswith(".md")):
+        with open(os.path.join(TUTORIALS, page), encoding="utf-8") as fh:
+            slow = SLOW in fh.read()
+        pages.append(pytest.param(page, marks=pytest.mark.slow) if slow else page)
+    return pages
+
+
+@pytest.mark.parametrize("page", _pages())
 def test_tutorial_runs(page, tmp_path, monkeypatch):
     blocks = python_blocks(os.path.join(TUTORIALS, page))
     assert blocks, f"{page} has no python block"

@@ -207,6 +207,14 @@ def resolve_unit(kind: str, argument, from_file, path: str) -> str:
 
 SESSION_COLUMN = "session"  # a column of this name (any case) labels each row's measurement session
 
+# Readings of instruments that give neither a point nor a pose, one column each, with the unit kind of the column:
+# the theodolite's sight angles and the range of a total station or a laser range finder (`Dataset.from_csv`).
+INSTRUMENT_COLUMNS = {
+    "theodolite": (("azimuth", "angle"), ("elevation", "angle")),
+    "theodolite_range": (("azimuth", "angle"), ("elevation", "angle"), ("range", "length")),
+    "laser_range": (("range", "length"),),
+}
+
 
 @dataclasses.dataclass
 class Layout:
@@ -415,6 +423,7 @@ def check_length_units(p_si, lines, length_unit, path):
                       "unit is mm: metres given as millimetres?", UnitWarning, stacklevel=3)
 
 
-__all__ = ["DataError", "DataWarning", "Layout", "Table", "UnitWarning", "at", "check_limit_units", "check_prismatic_units",
+__all__ = ["DataError", "DataWarning", "INSTRUMENT_COLUMNS", "Layout", "Table", "UnitWarning", "at", "check_limit_units",
+           "check_prismatic_units",
            "constant_columns", "decode_text", "find_layout", "joint_limits", "joint_scale", "prismatic_joints", "read_table",
            "read_text", "resolve_unit"]

@@ -99,6 +99,9 @@ class Dataset:
         head = cf.read_table(path, delimiter, header_only=True)  # the columns first, then the rows
         dev_class = None if device is None else type(device) if isinstance(device, Device) else device_class(device)
         reading = None if dev_class is None else dev_class.marker_reading
+        if dev_class is not None and dev_class.kind in cf.INSTRUMENT_COLUMNS:
+            return cls._instrument_csv(path, head.header, device or dev_class.kind, joints, length_unit, angle_unit,
+                                       covariates, delimiter, check_units, prismatic, limits)
         if reading == "points":
             return cls._multi_marker_csv(path, head.header, device, joints, marker, length_unit, angle_unit, covariates,
                                          delimiter, check_units, prismatic, limits)
@@ -172,6 +175,44 @@ class Dataset:
         return ds
 
     @classmethod
+    def _instrument_csv(cls, path, header, device, joints, length_unit, angle_unit, covariates, delimiter, check_units,
+                        prismatic, limits=None):
+        """`from_csv` for an instrument whose readings are sight angles and/or a range (`csvfile.INSTRUMENT_COLUMNS`:
+        `azimuth, elevation` in the angle unit, `range` in the length unit)."""
+        from jaxcal.fit import csvfile as cf
+
+        dev = as_device(device)
+        columns = cf.INSTRUMENT_COLUMNS[dev.kind]
+        names = [c for c, _ in columns]
+        lay = cf.find_layout(header, path, joints, names, None, covariates, orientation=False)
+        tab = cf.read_table(path, delimiter, needed=lay.joints + names + list(lay.covariates.values()))
+        length = cf.resolve_unit("length", length_unit, tab.units.get("length"), path)
+        angle = cf.resolve_unit("angle", angle_unit, tab.units.get("angle"), path)
+        prismatic = tuple(prismatic) + tuple(tab.units.get("prismatic", ()))
+        col = {h: i for i, h in enumerate(tab.header)}
+        q_raw = tab.values[:, [col[c] for c in lay.joints]]
+        q = q_raw * cf.joint_scale(lay.joints, prismatic, length, angle)
+        scale = np.array([cf.ANGLE_SCALE[angle] if kind == "angle" else cf.LENGTH_SCALE[length] for _, kind in columns])
+        y = tab.values[:, [col[c] for c in names]] * scale
+        if check_units:
+            cf.check_joint_units(q_raw, lay.joints, tab.lines, angle, path, prismatic)
+            cf.check_prismatic_units(q_raw, lay.joints, tab.lines, length, path, prismatic)
+            cf.check_limit_units(q, lay.joints, tab.lines, path, limits or {}, prismatic)
+            for k, (name, kind) in enumerate(columns):
+                big = np.abs(y[:, k]) > (cf.MAX_ANGLE_RAD if kind == "angle" else cf.MAX_POSITION_M)
+                if big.any():
+                    i = int(np.flatnonzero(big)[0])
+                    what = "degrees given as radians" if kind == "angle" else "millimetres given as metres"
+                    raise DataError(f"{cf.at(path, tab.lines[i])}, column {name!r}: {tab.values[i, col[name]]:.6g} is too "
+                                    f"large for {angle if kind == 'angle' else length}: {what}? state the unit")
+        cov = {name: tab.values[:, col[c]] for name, c in lay.covariates.items()}
+        if lay.session is not None:
+            cov["session"] = tab.column_text(lay.session)
+        ds = cls(q=q, y=y, device=dev, covariates=cov, joint_names=lay.joints, source=path)
+        ds.units = {"length": length, "angle": angle}
+        return ds
+
+    @classmethod
     def _multi_marker_csv(cls, path, header, device, joints, markers, length_unit, angle_unit, covariates, delimiter,
                           check_units, prismatic, limits=None):
         """`from_csv` for a multi-marker position device: the columns x_k, y_k, z_k of each marker k in `markers`
@@ -212,7 +253,8 @@ class Dataset:
 
     def to_csv(self, path, length_unit="m", angle_unit="rad", joints=None, prismatic=()):
         """Write this dataset as CSV (joint columns, x, y, z, and roll-pitch-yaw phix, phiy, phiz for
-        poses, then the covariates) with a `# units:` header line; atomically (temp file, then rename). Prismatic
+        poses, or x1, y1, z1, x2, ... for the markers of a multi_position device, then the covariates) with a
+        `# units:` header line; atomically (temp file, then rename). Prismatic
         joints (names in `prismatic`) are written in the length unit and listed in a `# prismatic:` line."""
         from scipy.spatial.transform import Rotation
 
@@ -220,12 +262,20 @@ class Dataset:
         from jaxcal.io_atomic import write_text_atomic
 
         reading = self.device.marker_reading
-        if reading not in ("point", "frame"):
-            raise DataError(f"to_csv writes position or pose data, not {self.device.kind!r}")
+        instrument = cf.INSTRUMENT_COLUMNS.get(self.device.kind)
+        if reading not in ("point", "points", "frame") and instrument is None:
+            raise DataError(f"to_csv writes position, multi-marker, pose or {'/'.join(cf.INSTRUMENT_COLUMNS)} data, "
+                            f"not {self.device.kind!r}")
         joints = list(joints or self.joint_names or [f"q{i + 1}" for i in range(self.q.shape[1])])
         ls, an = 1.0 / cf.LENGTH_SCALE[length_unit], 1.0 / cf.ANGLE_SCALE[angle_unit]
-        if reading == "point":
+        if instrument is not None:
+            meas = self.y * np.array([an if kind == "angle" else ls for _, kind in instrument])
+            names = [c for c, _ in instrument]
+        elif reading == "point":
             meas, names = self.y * ls, ["x", "y", "z"]
+        elif reading == "points":  # marker k in columns xk, yk, zk
+            meas = self.y.reshape(len(self.y), -1) * ls
+            names = [f"{a}{k}" for k in range(1, self.y.shape[1] + 1) for a in "xyz"]
         else:
             rpy = Rotation.from_matrix(self.y[:, :3, :3]).as_euler("xyz") * an
             meas, names = np.hstack([self.y[:, :3, 3] * ls, rpy]), ["x", "y", "z", "phix", "phiy", "phiz"]
