@@ -65,10 +65,20 @@ def _exact(robot, device, n=6, seed=0):
     return q, d, y
 
 
+def _two_tip_tree():
+    """TALOS read at both hands: what a device reading two links (link_camera) needs."""
+    import os
+
+    from jaxcal.robots.real_datasets import DATA_DIR
+
+    return jc.load_robot(os.path.join(DATA_DIR, "talos", "talos.urdf"), base="base_link",
+                         tips=["arm_left_7_link", "arm_right_7_link"])
+
+
 @pytest.mark.parametrize("kind", registered_kinds())
 def test_weights_follow_the_residual_components(kind):
     dev = _device(kind)
-    rb = jc.robots.get("stanford")
+    rb = _two_tip_tree() if kind == "link_camera" else jc.robots.get("stanford")
     _, _, y = _exact(rb, dev, n=1)
     res = dev.residual(jnp.asarray(y[0]), jnp.asarray(y[0]))
     w = np.asarray(dev.weights(SP, SR))

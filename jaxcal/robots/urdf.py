@@ -325,6 +325,8 @@ def robot_from_urdf(text: str, base: str | None = None, tip: str | None = None, 
         raise URDFError(f"{source}: tips= names no link")
     distinct = list(dict.fromkeys(tip_links))
     chains = [_chain(model, base, t, source) for t in distinct]
+    for joint in (j for chain in chains for j in chain):
+        _joint_type(joint, source)  # an unsupported joint type is named before anything else is read
     link_by_name = {ln.name: ln for ln in model.links}
     groups = tree_groups(chains, set(distinct))
     ends = {chain[-1].name for chain in chains}
