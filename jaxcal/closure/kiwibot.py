@@ -30,7 +30,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.kin.pose import Pose
-from jaxcal.kin.rotations import rot_x, rot_y, rot_z
+from jaxcal.kin.rotations import log_so3, rot_x, rot_y, rot_z
 
 BASE_RADIUS = 0.2805  # m, Table 4.4 rows 2-4 and 11-12 (d1)
 ARM = 0.6  # m, actuated (rows 5, 13, 14) and passive (rows 9, 15, 16) arm lengths
@@ -144,6 +144,19 @@ def closure_start(a, qj):
     q11 = _nacelle_joint(R10, p10, PSI[1], E[1])
     q12 = _nacelle_joint(R10, p10, PSI[2], E[2])
     return jnp.stack([q6, q7, q8, q9, q11, q12])
+
+
+STRUT_WEIGHT = 1.0  # rad per m: 1 mm of strut-length change costs as much as 1 mrad of orientation error
+
+
+def pointing_residual(pose: Pose, R_target, strut, weight=STRUT_WEIGHT):
+    """Residual of the Kiwibot's orientation compensation with the strut-length bias (seed 004 §4.3):
+    r = [log(R_target^T R_10); weight (|p_10| - strut)], (4,). The three actuators cannot set the
+    nacelle's position and orientation at once; beam aiming needs the orientation, and since an
+    orientation is reachable at any strut length the thesis adds a bias on the strut length (the
+    distance from frame 1, the base centre at the origin, to frame 10) to keep the nacelle near its
+    target distance. The weight is not printed; 1 rad/m treats metres and radians alike."""
+    return jnp.concatenate([log_so3(R_target.T @ pose.R), weight * (jnp.linalg.norm(pose.p) - strut)[None]])
 
 
 def with_kiwibot_closure(robot, solver: str = "newton"):

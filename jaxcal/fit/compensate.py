@@ -6,6 +6,11 @@ p(a, q) = P*: a square system for a mechanism with as many actuators as position
 dp/dq by `jax.jacfwd` through the closure, started from the nominal inverse solution (the thesis
 used Levenberg-Marquardt on the same cost; Newton on the square system converges in a few steps
 from that start). Vectorised over the targets.
+
+For other tasks (the Kiwibot's orientation with a strut-length bias, §4.3) `least_squares` solves one
+target's non-square problem by Gauss-Newton, and `line_search` is the thesis' fast approximate method
+(one steepest-descent line minimisation by quadratic interpolation, §3.2/§4.4.4); see
+docs/seed004-compensation.md.
 """
 
 from __future__ import annotations
@@ -58,3 +63,38 @@ def compensate(robot, a, targets, start, steps: int = 6, tol: float = 1e-9) -> C
         raise ValueError(f"compensate: targets must be (N, 3) and start (N, {robot.n_inputs}); got {targets.shape}, {start.shape}")
     q, err = _newton(robot, jnp.asarray(a, dtype=jnp.float64), targets, start, steps)
     return Compensation(q, err, jnp.isfinite(err) & (err <= tol))
+
+
+def least_squares(residual, q0, steps: int = 8, damping: float = 1e-12):
+    """Exact implementation for a non-square task (seed 004 §3.2, eq 3.6; §4.3 for the Kiwibot):
+    actuator settings minimising 1/2 |r(q)|^2 by Gauss-Newton, q <- q - (J^T J + lambda I)^-1 J^T r
+    with J = dr/dq by `jax.jacfwd` and a tiny lambda that only guards a singular J^T J. One target:
+    residual(q) -> r (m,), q0 (n,); vmap it over targets. The thesis used Levenberg-Marquardt on the
+    same cost; from the nominal inverse solution the undamped steps converge in a few iterations."""
+
+    def step(_, q):
+        r, J = residual(q), jax.jacfwd(residual)(q)
+        return q - jnp.linalg.solve(J.T @ J + damping * jnp.eye(q.shape[0]), J.T @ r)
+
+    return jax.lax.fori_loop(0, steps, step, jnp.asarray(q0, dtype=jnp.float64))
+
+
+def line_search(residual, q0):
+    """The thesis' fast approximate implementation (seed 004 §3.2 after eq 3.6, §4.4.4): one line
+    minimisation of f(q) = 1/2 |r(q)|^2 along the steepest-descent direction d = -J^T r(q0), by
+    quadratic interpolation of f at three offsets t = 0, s, 2s: the vertex
+    t* = s (3 f0 - 4 f1 + f2) / (2 (f0 - 2 f1 + f2)), clipped to [0, 2s], is the step; where the
+    samples are not convex the best sample is taken. s = f0 / |J^T r0|^2, the step at which f's
+    first-order model along d reaches 0 (scale-free; the thesis does not state its offsets).
+    One Jacobian and two extra residual evaluations per target, against ~10 of each for the exact
+    solution. Returns q0 + t* d for one target; vmap it over targets."""
+    q0 = jnp.asarray(q0, dtype=jnp.float64)
+    r0, J = residual(q0), jax.jacfwd(residual)(q0)
+    d = -J.T @ r0
+    f0 = 0.5 * jnp.dot(r0, r0)
+    s = f0 / jnp.maximum(jnp.dot(d, d), 1e-300)
+    f1, f2 = (0.5 * jnp.sum(residual(q0 + t * d) ** 2) for t in (s, 2.0 * s))
+    curvature = f0 - 2.0 * f1 + f2
+    vertex = jnp.clip(s * (3.0 * f0 - 4.0 * f1 + f2) / (2.0 * jnp.where(curvature > 0, curvature, 1.0)), 0.0, 2.0 * s)
+    best = jnp.array([0.0, s, 2.0 * s])[jnp.argmin(jnp.array([f0, f1, f2]))]
+    return q0 + jnp.where(curvature > 0, vertex, best) * d
