@@ -22,6 +22,28 @@ def _check_finite(arr, what):
         raise DataError(f"{what}: non-finite values in sample(s) {np.flatnonzero(bad)[:10].tolist()}")
 
 
+
+def _read_layout(path, delimiter, lay, readings, length_unit, angle_unit, prismatic):
+    """The rows of a CSV laid out as `lay` (joints, the reading columns, covariates): (table, length unit, angle
+    unit, prismatic joints, column index by name, joint values as in the file, joint values in m / rad)."""
+    from jaxcal.fit import csvfile as cf
+
+    tab = cf.read_table(path, delimiter, needed=lay.joints + list(readings) + list(lay.covariates.values()))
+    length = cf.resolve_unit("length", length_unit, tab.units.get("length"), path)
+    angle = cf.resolve_unit("angle", angle_unit, tab.units.get("angle"), path)
+    prismatic = tuple(prismatic) + tuple(tab.units.get("prismatic", ()))
+    col = {h: i for i, h in enumerate(tab.header)}
+    q_raw = tab.values[:, [col[c] for c in lay.joints]]
+    return tab, length, angle, prismatic, col, q_raw, q_raw * cf.joint_scale(lay.joints, prismatic, length, angle)
+
+
+def _covariates(tab, lay, col) -> dict:
+    """The covariate columns of a CSV laid out as `lay` (numbers), and its session labels (text) when it has them."""
+    cov = {name: tab.values[:, col[c]] for name, c in lay.covariates.items()}
+    if lay.session is not None:
+        cov["session"] = tab.column_text(lay.session)
+    return cov
+
 class Dataset:
     """Joint values q (N, n_inputs), device readings y and optional covariates.
 
@@ -185,13 +207,8 @@ class Dataset:
         columns = cf.INSTRUMENT_COLUMNS[dev.kind]
         names = [c for c, _ in columns]
         lay = cf.find_layout(header, path, joints, names, None, covariates, orientation=False)
-        tab = cf.read_table(path, delimiter, needed=lay.joints + names + list(lay.covariates.values()))
-        length = cf.resolve_unit("length", length_unit, tab.units.get("length"), path)
-        angle = cf.resolve_unit("angle", angle_unit, tab.units.get("angle"), path)
-        prismatic = tuple(prismatic) + tuple(tab.units.get("prismatic", ()))
-        col = {h: i for i, h in enumerate(tab.header)}
-        q_raw = tab.values[:, [col[c] for c in lay.joints]]
-        q = q_raw * cf.joint_scale(lay.joints, prismatic, length, angle)
+        tab, length, angle, prismatic, col, q_raw, q = _read_layout(path, delimiter, lay, names, length_unit, angle_unit,
+                                                                    prismatic)
         scale = np.array([cf.ANGLE_SCALE[angle] if kind == "angle" else cf.LENGTH_SCALE[length] for _, kind in columns])
         y = tab.values[:, [col[c] for c in names]] * scale
         if check_units:
@@ -205,9 +222,7 @@ class Dataset:
                     what = "degrees given as radians" if kind == "angle" else "millimetres given as metres"
                     raise DataError(f"{cf.at(path, tab.lines[i])}, column {name!r}: {tab.values[i, col[name]]:.6g} is too "
                                     f"large for {angle if kind == 'angle' else length}: {what}? state the unit")
-        cov = {name: tab.values[:, col[c]] for name, c in lay.covariates.items()}
-        if lay.session is not None:
-            cov["session"] = tab.column_text(lay.session)
+        cov = _covariates(tab, lay, col)
         ds = cls(q=q, y=y, device=dev, covariates=cov, joint_names=lay.joints, source=path)
         ds.units = {"length": length, "angle": angle}
         return ds
@@ -227,14 +242,9 @@ class Dataset:
                             f"{[m or '(unnumbered)' for m in found]}")
         position = [f"{a}{m}" for m in markers for a in "xyz"]
         lay = cf.find_layout(header, path, joints, position, None, covariates, orientation=False)
-        tab = cf.read_table(path, delimiter, needed=lay.joints + position + list(lay.covariates.values()))
-        length = cf.resolve_unit("length", length_unit, tab.units.get("length"), path)
-        angle = cf.resolve_unit("angle", angle_unit, tab.units.get("angle"), path)
-        prismatic = tuple(prismatic) + tuple(tab.units.get("prismatic", ()))
-        col = {h: i for i, h in enumerate(tab.header)}
-        q_raw = tab.values[:, [col[c] for c in lay.joints]]
+        tab, length, angle, prismatic, col, q_raw, q = _read_layout(path, delimiter, lay, position, length_unit, angle_unit,
+                                                                    prismatic)
         p = tab.values[:, [col[c] for c in position]].reshape(len(q_raw), len(markers), 3) * cf.LENGTH_SCALE[length]
-        q = q_raw * cf.joint_scale(lay.joints, prismatic, length, angle)
         if check_units:
             cf.check_joint_units(q_raw, lay.joints, tab.lines, angle, path, prismatic)
             cf.check_prismatic_units(q_raw, lay.joints, tab.lines, length, path, prismatic)
@@ -244,9 +254,7 @@ class Dataset:
         dev = device if isinstance(device, Device) else make_device("multi_position", points=len(markers))
         if dev.reading_shape != (len(markers), 3):
             raise DataError(f"{path}: device has {dev.reading_shape[0]} marker points, the file gives markers {markers}")
-        cov = {name: tab.values[:, col[c]] for name, c in lay.covariates.items()}
-        if lay.session is not None:
-            cov["session"] = tab.column_text(lay.session)
+        cov = _covariates(tab, lay, col)
         ds = cls(q=q, y=p, device=dev, covariates=cov, joint_names=lay.joints, source=path)
         ds.units = {"length": length, "angle": angle}
         return ds

@@ -10,22 +10,27 @@ as tips[0] so that C starts near zero, or give C's nominal values (`with_values`
 
 from __future__ import annotations
 
-import jax.numpy as jnp
-
 from jaxcal.kin.pose import Pose
-from jaxcal.measure.base import XYZ, Device, additive_noise, frame_from_params, frame_names
+from jaxcal.measure.base import XYZ, frame_from_params, frame_names
+from jaxcal.measure.position import Position
 from jaxcal.measure.registry import register
 
 
-class LinkCamera(Device):
-    """A marker on tips[1] read in a camera on tips[0]."""
+class LinkCamera(Position):
+    """A marker on tips[1] read in a camera on tips[0]: a point reading like `Position` (residual, errors, noise),
+    with no device frame in the world to register."""
 
     kind = "link_camera"
-    residual_components = ("length",) * 3
+    frame_index = None
+    marker_reading = None
 
     @classmethod
     def build(cls) -> "LinkCamera":
         return cls.nominal_device(frame_names("cam") + frame_names("tool", XYZ), (3,))
+
+    @property
+    def n_points(self) -> int:
+        return 0
 
     def check_robot(self, robot) -> None:
         """The robot must be a tree read at two bodies: the camera's link, then the marker's."""
@@ -40,17 +45,8 @@ class LinkCamera(Device):
         marker_link = Pose(tip.R[1], tip.p[1])
         return frame_from_params(d[0:6]).inverse().apply(camera_link.inverse().apply(marker_link.apply(d[6:9])))
 
-    def residual(self, pred, meas):
-        """y_meas - y_pred (3,)."""
-        return (meas - pred).reshape(-1)
-
-    def split_errors(self, res):
-        """(|r| per sample, None)."""
-        return jnp.linalg.norm(res, axis=-1), None
-
-    def add_noise(self, y, normal, sigma_position, sigma_orientation):
-        """y + sigma_position n, n (N, 3)."""
-        return additive_noise(y, normal, sigma_position)
+    def points(self, y):
+        return None
 
 
 register(LinkCamera, "head_camera")
