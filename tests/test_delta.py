@@ -126,6 +126,14 @@ def test_closed_loop_jacobian_matches_central_differences(rb):
     # d/dq through the closure is exercised by the compensation test (Newton converges to 1e-12 m)
 
 
+def test_compensation_refuses_targets_of_the_wrong_shape(rb):
+    from jaxcal.fit.compensate import compensate
+
+    with pytest.raises(ValueError, match="targets must be"):
+        compensate(rb, rb.nominal, jnp.zeros((4, 2)), start=jnp.zeros((4, 3)))
+
+
+@pytest.mark.slow  # a study: 125 targets through the closure's Jacobian (compile-bound, ~45-90 s)
 def test_compensation_on_the_grid(rb):
     """§3.2/§4.4: commanding the nominal inverse solution on the 125-point grid with the rod of
     frame 26 20 mm longer misses by millimetres; compensating with the (here exactly) calibrated
