@@ -9,6 +9,7 @@ from conftest import central_fd, rel_err
 
 import jaxcal as jc
 from jaxcal.closure import delta as dl
+from jaxcal.fit import core
 from jaxcal.fit.identify import residual_weights, residuals
 from jaxcal.measure.devices import frame_from_params, locate_theodolite
 
@@ -96,10 +97,11 @@ def _delta_study(device, noise=None, free=None, n_grid=5, seed=0, **options):
     data = jc.simulate(rb, a_true, np.asarray(theta), device, noise=noise, seed=seed)
     fit = jc.identify(rb, data, known=("dev", "tool"), free=free, **options)
     w = residual_weights(data.device, 1.0, 1.0)
-    q, y = jnp.asarray(data.q), jnp.asarray(data.y)
+    model = core.RobotDevice(rb, data.device)
 
-    def norm(a):
-        return float(jnp.linalg.norm(residuals(rb, data.device, jnp.concatenate([a, data.device.nominal]), q, y, w)))
+    def norm(a):  # the residual function the fit compiled (same shapes), unweighted
+        x = np.concatenate([a, data.device.nominal])
+        return float(np.linalg.norm(core.model_residuals(model, x, data.q, data.y, core.no_covariates(len(data.q)), w)))
 
     return rb, a_true, fit, norm(rb.nominal), norm(fit.a)
 

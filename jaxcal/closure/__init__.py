@@ -13,6 +13,7 @@ from jaxcal.closure.core import (
     closure_status,
     failed_pose,
     forward_closed,
+    forward_with_status,
     open_tree,
     solve,
     tree_frames,
@@ -21,7 +22,7 @@ from jaxcal.closure.planar import planar_robot
 from jaxcal.closure.table import closure_from_rows
 from jaxcal.closure.track import CLOSED, OTHER_MODE, STATUS_NAMES, UNCLOSED
 
-__all__ = ["all_frames", "closed", "CLOSED", "CLOSED_TOL", "Closure", "closure_from_rows", "closure_residual",
-           "closure_status", "ClosureSolution", "constraint_jacobian", "FAIL_OFFSET", "failed_pose", "forward_closed",
-           "Mobility", "mobility", "open_tree", "OTHER_MODE", "planar_robot", "solve", "STATUS_NAMES", "tree_frames",
-           "UNCLOSED", "VERDICTS"]
+__all__ = ["all_frames", "closed", "CLOSED", "CLOSED_TOL", "Closure", "closure_from_rows", "closure_residual", "closure_status",
+           "ClosureSolution", "constraint_jacobian", "FAIL_OFFSET", "failed_pose", "forward_closed", "forward_with_status",
+           "Mobility", "mobility", "open_tree", "OTHER_MODE", "planar_robot", "solve", "STATUS_NAMES", "tree_frames", "UNCLOSED",
+           "VERDICTS"]

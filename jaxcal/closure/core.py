@@ -377,6 +377,30 @@ def forward_closed(robot: Robot, a, q, start=None) -> Pose:
     return _forward_batched(robot, a, q, *_start(robot, start))
 
 
+@functools.partial(jax.jit, static_argnums=0)
+def _tool_of_solution(robot: Robot, a, q, theta_free, ok) -> Pose:
+    def one(qi, th, k):
+        f = tree_frames(robot, a, joint_variables(robot, a, qi), th)
+        return failed_pose(Pose(f.R[robot.tip], f.p[robot.tip]), k)
+
+    lead = q.shape[:-1]
+    out = jax.vmap(one)(q.reshape(-1, q.shape[-1]), theta_free.reshape(-1, theta_free.shape[-1]), ok.reshape(-1))
+    return jax.tree_util.tree_map(lambda v: v.reshape(lead + v.shape[1:]), out)
+
+
+def forward_with_status(robot: Robot, a, q) -> tuple[Pose, jax.Array]:
+    """(tool pose, closure status) per sample from one closure solve: the solve of `closure_status`
+    (compiled once and shared with the fits' unclosed-sample checks), then the open tree at the
+    closed free joints, which compiles in a fraction of a differentiable `forward_closed`. Unclosed
+    samples get the penalty pose of `failed_pose`, as in `forward_closed`."""
+    checked_closure(robot)
+    a = jnp.asarray(a, dtype=jnp.float64)
+    q = jnp.asarray(q, dtype=jnp.float64)
+    own = getattr(robot.closure, "solve", None)
+    sol = own(robot, a, q) if own is not None else solve(robot, a, q)
+    return _tool_of_solution(robot, a, q, sol.theta_free, sol.ok), sol.status
+
+
 def closed(robot: Robot, a, q, start=None):
     """Per-sample boolean flags: True where the loops close to |v| <= tol. A mechanism-specific
     closure (one with its own `solve`, e.g. the Delta's) answers for itself unless a start is given."""

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal.closure import forward_with_status
 from jaxcal.fit.data import Dataset
 from jaxcal.forward import forward
 from jaxcal.measure import as_device
@@ -36,12 +37,12 @@ def perturb(robot, scale=0.003, seed: int = 0, free_only: bool = True):
     return jnp.asarray(a)
 
 
-def warn_unclosed(robot, a, q) -> np.ndarray:
-    """Closure status per sample (`jaxcal.closure.closure_status`); warns naming the samples that do not close
+def warn_unclosed(robot, status) -> np.ndarray:
+    """Warns naming the samples whose closure status (`jaxcal.closure.closure_status`) is not CLOSED
     (their readings are the penalty pose of `jaxcal.closure.failed_pose`, not a measurement)."""
-    from jaxcal.closure import STATUS_NAMES, closure_status
+    from jaxcal.closure import STATUS_NAMES
 
-    status = np.asarray(closure_status(robot, jnp.asarray(a, dtype=jnp.float64), jnp.asarray(q, dtype=jnp.float64)))
+    status = np.asarray(status)
     bad = np.flatnonzero(status != 0)
     if bad.size:
         kinds = ", ".join(f"{np.sum(status == k)} {STATUS_NAMES[k]}" for k in (1, 2) if np.any(status == k))
@@ -74,9 +75,11 @@ def simulate(robot, a_true, q, device="position", noise=None, device_params=None
     rng = np.random.default_rng(seed)
     q = np.asarray(q, float)
     q_actual = q + s_q * rng.standard_normal(q.shape)
-    tips = forward(robot, jnp.asarray(a_true, dtype=jnp.float64), q_actual)
     if robot.closure is not None:
-        warn_unclosed(robot, a_true, q_actual)
+        tips, status = forward_with_status(robot, a_true, q_actual)
+        warn_unclosed(robot, status)
+    else:
+        tips = forward(robot, jnp.asarray(a_true, dtype=jnp.float64), q_actual)
     y = jax.vmap(dev.read, (0, None))(tips, d)
     y = np.asarray(dev.add_noise(y, rng.standard_normal, s_p, s_r))
     return Dataset(q=q, y=y, device=dev, joint_names=robot.joint_names)
