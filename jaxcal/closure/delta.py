@@ -20,9 +20,10 @@ but the first ends in a universal joint whose centre does not move with the join
 16, 19, 22, 25, 28 sit on the elbow axis), so its rod end sweeps a sphere of radius |d_rod|
 around that centre. The 20 free joints therefore reduce to the 5 joints of rod 1 (universal
 5-6, ball 7-8-9, which carry the nacelle) under 5 sphere conditions |o_closure - c_k| = L_k:
-a square system solved by Newton from the nominal direct solution. The other rods' universal
-angles then follow by atan2 and their spin joints (17, 20, 23, 26, 29) do not move anything
-(set to 0). Every sample is checked on the whole tree: the 15 closure residuals (positions of
+a square system solved by Newton from the nominal direct solution of the robot's own dimensions
+(`DeltaClosure.geometry`; any arm azimuths, `jaxcal.robots.delta_builder` writes the table from them).
+The other rods' universal angles then follow by atan2 and their spin joints (17, 20, 23, 26, 29) do
+not move anything (set to 0). Every sample is checked on the whole tree: the 15 closure residuals (positions of
 the spherical closure pairs) must have norm <= `CLOSURE_TOL` (the thesis' 1e-10), else the
 sample is flagged. Derivatives come from the implicit function theorem: one Newton step taken
 from the (gradient-stopped) converged point, dx/da = -J^-1 dF/da.
@@ -53,13 +54,32 @@ TRACK_TOL = 1e-12  # m: residual norm each continuation corrector reaches
 
 @dataclasses.dataclass(frozen=True)
 class DeltaGeometry:
-    """Nominal Delta dimensions (m) and arm azimuths psi (rad), in the order of the actuators."""
+    """Nominal Delta dimensions (m) and arm azimuths psi (rad), in the order of the actuators (§2.6):
+    base radius rb, nacelle radius rn, actuated arm n, rods m; each arm carries a parallelogram whose
+    two rods sit at +-spread along the elbow axis (Table 4.6 rows 6, 16, ...: 0.15 m); tool is the
+    tool point relative to the nacelle centre P in base axes (the nacelle stays parallel to the base)."""
 
     rb: float = 0.2805
     rn: float = 0.196
     n: float = 0.6
     m: float = 0.9
     psi: tuple = (0.0, -2.0 * np.pi / 3.0, 2.0 * np.pi / 3.0)
+    spread: float = 0.15
+    tool: tuple = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        for field in ("rb", "rn", "n", "m", "spread"):
+            value = getattr(self, field)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"Delta geometry: {field} must be a positive length in m, got {value!r}")
+        for field in ("psi", "tool"):
+            values = np.asarray(getattr(self, field), dtype=float)
+            if values.shape != (3,) or not np.all(np.isfinite(values)):
+                raise ValueError(f"Delta geometry: {field} must be 3 finite numbers, got {getattr(self, field)!r}")
+            object.__setattr__(self, field, tuple(float(v) for v in values))  # hashable: part of a static robot
+        gaps = np.abs(np.angle(np.exp(1j * (np.array(self.psi) - np.roll(self.psi, 1)))))
+        if np.min(gaps) < 1e-6:
+            raise ValueError(f"Delta geometry: the arm azimuths psi must be distinct, got {self.psi!r} rad")
 
 
 # The Canterbury Delta of Table 4.6: actuators 2, 3, 4 at psi = 0, -120, +120 deg.
@@ -134,6 +154,23 @@ CLOSURES = (10, 11, 12, 13, 14)  # nacelle ends of rods 2-6 (spherical closures)
 RODS = ((15, 16, 17), (18, 19, 20), (21, 22, 23), (24, 25, 26), (27, 28, 29))  # universal + rod end
 R_NACELLE = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # nominal nacelle frame, Rz(-pi/2)
 _BALL = np.asarray(rot_x(np.pi / 2) @ rot_y(-np.pi / 2))  # constant part of the ball joint 7-8-9
+
+
+def rod_ends(g: DeltaGeometry = NOMINAL) -> np.ndarray:
+    """Nacelle ends of rods 1-6 relative to the nacelle centre P, base axes (6, 3): arm i's parallelogram
+    ends at rn (cos psi_i, sin psi_i, 0) +- spread (-sin psi_i, cos psi_i, 0) (radial and elbow-axis
+    directions, eq 2.135); rods 1, 2 on arm 1 (+, -), 3, 4 on arm 2, 5, 6 on arm 3."""
+    psi = np.repeat(np.asarray(g.psi), 2)
+    side = np.tile([1.0, -1.0], 3)[:, None]
+    radial = np.stack([np.cos(psi), np.sin(psi), np.zeros(6)], axis=-1)
+    axis = np.stack([-np.sin(psi), np.cos(psi), np.zeros(6)], axis=-1)
+    return g.rn * radial + side * g.spread * axis
+
+
+def nacelle_local(v, g: DeltaGeometry = NOMINAL) -> np.ndarray:
+    """Points P + v (v (..., 3) in base axes) in the nacelle frame, body 9 of Table 4.6: origin at rod 1's
+    end, axes R_NACELLE while the nacelle is parallel to the base."""
+    return np.asarray(v) @ R_NACELLE - R_NACELLE.T @ rod_ends(g)[0]
 
 
 def check_structure(robot):
@@ -225,13 +262,15 @@ def _universal_angles(R_pre, u):
     return jnp.arctan2(v[1], v[0]), jnp.arctan2(v[2], jnp.hypot(v[0], v[1]))
 
 
-def _start(robot, st, q, fixed, tool_offset):
-    """Rod-1 joint values from the nominal direct solution (nacelle centre P, nacelle parallel
-    to the base): universal angles from the rod direction, ball angles from the nacelle
-    orientation (R6^T R9 C^T = Rz(q7) Ry(-q8) Rx(-q9), a Z-Y-X decomposition)."""
+def _start(robot, st, q, fixed):
+    """Rod-1 joint values from the nominal direct solution of the robot's own geometry (nacelle centre
+    P, nacelle parallel to the base, rod 1's end o9 = P + `rod_ends`[0]): universal angles from the rod
+    direction, ball angles from the nacelle orientation (R6^T R9 C^T = Rz(q7) Ry(-q8) Rx(-q9), a Z-Y-X
+    decomposition)."""
+    g = robot.closure.geometry
     theta = q + jnp.stack([_row(st, k)[2] for k in ACTUATORS])
-    P, ok = direct(theta)
-    o9 = P - R_NACELLE @ tool_offset
+    P, ok = direct(theta, g)
+    o9 = P + rod_ends(g)[0]
     f6 = fixed["elbow1"].compose(_local(st, ROD1[1]))
     u = o9 - f6.p
     q5, q6 = _universal_angles(fixed["elbow1"].R, u / jnp.linalg.norm(u))
@@ -287,11 +326,6 @@ def _homotopy_residual(robot, a, q):
     return fn
 
 
-def _tool_offset(robot):
-    """Tool point in the nacelle frame at the nominal parameters (row 30)."""
-    return _local(_statics(robot, robot.nominal_np), TOOL).p
-
-
 def _rod_angles(robot, st, fixed, nacelle):
     """Universal angles (qa (5,), qb (5,)) of rods 2-6 pointing each rod end at its nacelle closure
     point (as `_universal_angles`)."""
@@ -333,7 +367,7 @@ def _fast_single(robot, a, q):
     reduction applies (`structure_ok`, nominal direct solution feasible)."""
     st = _statics(robot, a)
     fixed = _fixed(robot, st, q)
-    x0, ok_start = _start(robot, st, q, fixed, _tool_offset(robot))
+    x0, ok_start = _start(robot, st, q, fixed)
     x_fast, err_fast, k_fast = _newton(robot, st, fixed, x0)
     valid = ok_start & structure_ok(robot, st)
     closes = valid & (err_fast <= NEWTON_TOL) & jnp.all(jnp.isfinite(x_fast))
@@ -466,9 +500,11 @@ def closed(robot, a, q):
 @dataclasses.dataclass(frozen=True)
 class DeltaClosure(Closure):
     """The generic closure description of the Table 4.6 Delta plus its fast path: `jc.forward`
-    calls `forward(robot, a, q)` (nominal direct solution start + Newton on the reduced square
-    system); the generic LM of `jaxcal.closure` still works from `start` near the home setting."""
+    calls `forward(robot, a, q)` (start from the nominal direct solution of `geometry`, the robot's
+    own dimensions, then Newton on the reduced square system); the generic LM of `jaxcal.closure`
+    still works from `start` near the home setting."""
 
+    geometry: DeltaGeometry = NOMINAL
     transposable = True  # its JVP is built from reverse-mode Jacobians
 
     def forward(self, robot, a, q) -> Pose:
@@ -480,15 +516,9 @@ class DeltaClosure(Closure):
 
 def full_precision_nominal(robot, g: DeltaGeometry = NOMINAL):
     """The nominal parameters with the nacelle points 10-14 at full precision (Table 4.6 prints
-    4 digits, ~4e-5 m off): each point is the nacelle centre + rn radial(psi) -+ half the
-    parallelogram spread along its arm's elbow axis, in the nacelle frame R_NACELLE."""
+    4 digits, ~4e-5 m off): the ends of rods 2-6 (`rod_ends`) in the nacelle frame (`nacelle_local`)."""
     a = np.array(robot.nominal_np)
-    centre = np.array([0.15, -0.196, 0.0])  # tool point (row 30) in the nacelle frame
-    half = 0.15
-    for body, arm, side in [(10, 0, -1), (11, 1, 1), (12, 1, -1), (13, 2, 1), (14, 2, -1)]:
-        psi = g.psi[arm]
-        v = g.rn * np.array([np.cos(psi), np.sin(psi), 0]) + side * half * np.array([-np.sin(psi), np.cos(psi), 0])
-        local = R_NACELLE.T @ v + centre
+    for body, local in zip(CLOSURES, nacelle_local(rod_ends(g)[1:], g)):
         a[robot.index(f"j{body}.d1")], a[robot.index(f"j{body}.d2")] = local[0], local[1]
     return jnp.asarray(a)
 
@@ -497,16 +527,28 @@ PAIRS = tuple((rod[2], c, "position") for c, rod in zip(CLOSURES, RODS))
 FREE = ROD1 + tuple(b for rod in RODS for b in rod[:2])
 
 
-def with_delta_closure(robot, free=None):
-    """The Table 4.6 robot with a `DeltaClosure` whose generic start is the closed home setting,
-    and (optionally) the free parameters given by name."""
+@functools.partial(jax.jit, static_argnums=0)
+def _home_closure(robot, a, q):
+    """(theta_free in the order of FREE, ok) of the nominal model at one setting by the fast path alone:
+    the nominal direct solution is exact there, so Newton closes at once and the continuation of `solve`
+    (most of its compile time) is not needed; `ok` is `_finish_single`'s check on the whole tree."""
+    qj = joint_variables(robot, a, q)
+    _, x_fast, fast_ok, closes, _, _ = _fast_single(robot, a, qj)
+    x, rods, _, ok, _, _ = _finish_single(robot, a, qj, x_fast, fast_ok, closes & ~fast_ok)
+    return jnp.concatenate([x, jnp.stack(rods, axis=-1).ravel()]), ok
+
+
+def with_delta_closure(robot, free=None, geometry: DeltaGeometry = NOMINAL):
+    """The Table 4.6 robot with a `DeltaClosure` whose generic start is the closed home setting, whose
+    fast path starts from the nominal direct solution of `geometry` (the dimensions the robot's table was
+    written from), and (optionally) the free parameters given by name."""
     check_structure(robot)
-    plain = robot.replace(closure=DeltaClosure(pairs=PAIRS, free=FREE, start=(0.0,) * len(FREE)))
-    with jax.disable_jit():  # one setting: op by op is quicker than compiling
-        start = solve(plain, plain.nominal, plain.home)
-    if not bool(start.ok):
+    plain = robot.replace(closure=DeltaClosure(pairs=PAIRS, free=FREE, start=(0.0,) * len(FREE), geometry=geometry))
+    theta, ok = _home_closure(plain, plain.nominal, plain.home)
+    if not bool(ok):
         raise ValueError(f"robot {robot.name!r}: the Delta does not close at its home setting {plain.home_np}")
-    out = robot.replace(closure=DeltaClosure(pairs=PAIRS, free=FREE, start=tuple(float(v) for v in start.theta_free)))
+    start = tuple(float(v) for v in theta)
+    out = robot.replace(closure=DeltaClosure(pairs=PAIRS, free=FREE, start=start, geometry=geometry))
     return out if free is None else out.with_free(free)
 
 
