@@ -11,6 +11,7 @@ from conftest import central_fd, rel_err
 
 import jaxcal as jc
 from jaxcal.closure import delta as dl
+from jaxcal.fit import core
 
 N = 16  # one batch shape for every closure call: one compile per function
 _direct = jax.jit(jax.vmap(dl.direct))
@@ -150,3 +151,50 @@ def test_compensation_on_the_grid(rb):
     assert float(jnp.max(before)) > 5e-3 and float(jnp.max(after)) < 1e-9
     with pytest.raises(ValueError, match="targets must be"):
         compensate(rb, a_true, P[:, :2], start=q_nominal)
+
+
+def test_broken_reduction_hands_over_to_the_generic_closure(rb):
+    """Issue 16 item 3: a fixed entry the fast path relies on (j16.a1, a universal joint's right angle) moved
+    by 1 mrad made the fast path flag every sample although the whole tree still closes. Such a robot, and a
+    fit that frees such an entry, are served by the generic whole-tree closure, with a warning naming it."""
+    a = np.asarray(rb.nominal).copy()
+    assert dl.reduction_breaks(rb, a) == [] and rb.closure.serving(rb, a) is rb
+    a[rb.index("j16.a1")] += 1e-3
+    with pytest.warns(UserWarning, match="j16.a1"):
+        served = rb.closure.serving(rb, a)
+    assert type(served.closure) is jc.closure.Closure and served.closure.free == rb.closure.free
+    free = rb.free_mask.copy()
+    free[rb.index("j19.d1")] = True
+    assert dl.reduction_breaks(rb, rb.nominal, free) == ["j19.d1"]
+    dev = jc.make_device("position")
+    with pytest.warns(UserWarning, match="j19.d1"):
+        problem = core.make_problem(rb, dev, np.zeros((2, 3)), np.zeros((2, 3)), weights=np.ones(3),
+                                    free=np.concatenate([free, np.zeros(len(dev.names), bool)]),
+                                    a_ref=np.concatenate([rb.nominal, dev.nominal]))
+    assert type(problem.robot.closure) is jc.closure.Closure
+    plain = core.make_problem(rb, dev, np.zeros((2, 3)), np.zeros((2, 3)), weights=np.ones(3),
+                              free=np.concatenate([rb.free_mask, np.zeros(len(dev.names), bool)]),
+                              a_ref=np.concatenate([rb.nominal, dev.nominal]))
+    assert plain.robot is rb
+
+
+@pytest.mark.slow  # compiles the generic closure of the 30-body tree, then a fit through it
+def test_a_delta_with_a_bent_universal_joint_closes_and_is_calibrated(rb):
+    """j16.a1 1 mrad off its right angle: every sample closes (the fast path flagged all 27 unclosed). A fit that
+    frees j16.a1 with the six rod lengths finds rod 26's 2 mm from noise-free positions and leaves j16.a1 out of
+    the base set: a universal joint's rod end sweeps the same sphere whatever the angle between its axes, so the
+    angle has no effect on the tool (with base=False all seven are estimated at condition ~1e16)."""
+    theta = np.asarray(jax.vmap(dl.inverse)(jnp.asarray(dl.grid(spacing=0.2, n=3)))[0])
+    a_true = rb.nominal.at[rb.index("j16.a1")].add(1e-3).at[rb.index("j26.d1")].add(2e-3)
+    assert not np.any(np.asarray(dl.solve(rb, a_true, theta).ok))  # the fast path alone
+    with pytest.warns(UserWarning, match="j16.a1"):
+        status = np.asarray(jc.closure.closure_status(rb, a_true, theta))
+    assert np.all(status == jc.closure.CLOSED), status
+    with pytest.warns(UserWarning, match="j16.a1"):
+        data = jc.simulate(rb, a_true, theta, "position")
+    free = ["j16.a1", "j7.d1", "j17.d1", "j20.d1", "j23.d1", "j26.d1", "j29.d1"]
+    with pytest.warns(UserWarning, match="j16.a1"):
+        fit = jc.identify(rb, data, free=free, known=("dev", "tool"))
+    assert "j16.a1" not in fit.estimated and set(fit.estimated) == set(free[1:]), fit.estimated
+    err = np.abs(np.asarray(fit.a) - np.asarray(a_true))[[rb.index(n) for n in free[1:]]]
+    assert fit.converged and err.max() < 1e-7, (fit.converged, err.max())  # measured 3.0e-8 m

@@ -78,6 +78,12 @@ class Closure:
     solver: str = "track"
     start_fn: Callable | None = None
 
+    def serving(self, robot: Robot, a, free_mask=None) -> Robot:
+        """The robot whose closure serves parameters a (and, in a fit, any change of the entries free_mask
+        frees): the robot itself. A mechanism-specific closure whose shortcut holds only for some fixed
+        entries (the Delta's) answers with the generic closure where they are off or free."""
+        return robot
+
     def __post_init__(self):
         if self.solver not in SOLVERS:
             raise ValueError(f"closure solver must be one of {SOLVERS}, got {self.solver!r}")

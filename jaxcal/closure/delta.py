@@ -33,12 +33,14 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.closure.core import Closure, ClosureSolution, euler_parameters, failed_pose, tree_frames
+from jaxcal.closure.core import Closure, ClosureSolution, euler_parameters, failed_pose, forward_closed, tree_frames
+from jaxcal.closure.core import solve as solve_generic
 from jaxcal.closure.track import CLOSED, OTHER_MODE, UNCLOSED, Tracked, track
 from jaxcal.kin.model import joint_variables
 from jaxcal.kin.pose import Pose
@@ -507,11 +509,56 @@ class DeltaClosure(Closure):
     geometry: DeltaGeometry = NOMINAL
     transposable = True  # its JVP is built from reverse-mode Jacobians
 
+    def serving(self, robot, a, free_mask=None):
+        """The robot itself while the fixed entries the reduction relies on (`structure_entries`) hold in a
+        and are not free; else the robot with the generic whole-tree closure (`general_robot`), which closes
+        any geometry (the fast path would flag every sample). A traced a (inside a fit) is not checked: the
+        fit's problem is set up with the serving robot (`jaxcal.fit.core.make_problem`)."""
+        if isinstance(a, jax.core.Tracer):
+            return robot
+        off = reduction_breaks(robot, a, free_mask)
+        if not off:
+            return robot
+        warnings.warn(f"{robot.name}: the Delta's fast closure needs {', '.join(off[:6])}{' ...' if len(off) > 6 else ''} "
+                      "fixed at their Table 4.6 values (perpendicular universal joints on the elbow axis, rod ends on "
+                      "the rod axis); they are off or free, so the generic whole-tree closure is used (slower to "
+                      "compile and run)", stacklevel=3)
+        return general_robot(robot)
+
     def forward(self, robot, a, q) -> Pose:
-        return forward(robot, a, q)
+        served = self.serving(robot, a)
+        return forward(robot, a, q) if served is robot else forward_closed(served, a, q)
 
     def solve(self, robot, a, q) -> ClosureSolution:
-        return solve(robot, a, q)
+        served = self.serving(robot, a)
+        return solve(robot, a, q) if served is robot else solve_generic(served, a, q)
+
+
+STRUCTURE_TOL = 1e-12  # rad / m: how far a structure entry may be from its value for the reduction to hold
+
+
+def structure_entries(robot) -> list[tuple[int, float]]:
+    """(parameter index, value) of the fixed entries `structure_ok` checks, where the robot has them: rows
+    16, 19, ... (a1 = pi/2, a2 = a3 = d1 = 0) and 17, 20, ... (a1 = a2 = d2 = 0)."""
+    want = []
+    for _, e2, end in RODS:
+        want += [(robot.bodies[e2 - 1].rows[f], v) for f, v in ((0, np.pi / 2), (1, 0.0), (2, 0.0), (3, 0.0))]
+        want += [(robot.bodies[end - 1].rows[f], 0.0) for f in (0, 1, 4)]
+    return [(int(i), v) for i, v in want if i >= 0]
+
+
+def reduction_breaks(robot, a, free_mask=None) -> list[str]:
+    """Names of the structure entries that are off their value in a (by > STRUCTURE_TOL) or free in free_mask."""
+    a = np.asarray(a, float)
+    free = np.zeros(len(a), bool) if free_mask is None else np.asarray(free_mask, bool)
+    return [robot.names[i] for i, v in structure_entries(robot) if abs(a[i] - v) > STRUCTURE_TOL or free[i]]
+
+
+def general_robot(robot):
+    """The Delta with the generic whole-tree closure (`jaxcal.closure.core`: continuation from the closed home
+    configuration `start`) in place of the fast path: same parameters, any geometry."""
+    c = robot.closure
+    return robot.replace(closure=Closure(pairs=c.pairs, free=c.free, start=c.start))
 
 
 def full_precision_nominal(robot, g: DeltaGeometry = NOMINAL):

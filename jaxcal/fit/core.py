@@ -489,6 +489,8 @@ def make_problem(robot: Robot, device: Device, q, y, *, weights, free, a_ref, bo
     """A `Problem`: weights (m,) per residual component, optionally times sample_weights (N,); model and cov
     (N, c): a residual model other than the robot measured by the device, and its per-sample covariates."""
     device.check_robot(robot)
+    if robot.closure is not None and model is None:  # a closure whose shortcut the free entries would break: the general one
+        robot = robot.closure.serving(robot, np.asarray(a_ref, float)[:robot.n_params], np.asarray(free, bool)[:robot.n_params])
     q, y = np.asarray(q, float), np.asarray(y, float)
     w = np.broadcast_to(np.asarray(weights, float), (len(q), np.size(weights))).copy()
     if sample_weights is not None:
