@@ -16,11 +16,17 @@ noise draw (through the loop closure, whose derivative comes from the implicit f
 Outputs (atomic writes): benchmarks/results/montecarlo_fourbar3d.json and montecarlo_fourbar3d_*.png.
 
 Run: python benchmarks/montecarlo_fourbar3d.py [--quick] [--speed]
+
+`--thesis-conditions [--draws N]` runs run 3 under the thesis' own conditions instead (issue 16 item 5):
+the 14-parameter base set or the thesis' 26 parameters (the Table 4.2b entries that differ from nominal,
+alpha_2,2 = j2.a2 among them, estimated without the base-set reduction), each started from the
+noise-free estimate or from the nominal model (LM). Output: benchmarks/results/montecarlo_fourbar3d_thesis_conditions.json.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import resource
 import sys
@@ -29,6 +35,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+import scipy.stats
 
 import jaxcal as jc
 from jaxcal.fit import core
@@ -213,6 +220,149 @@ def table_4_3(mc):
             "ci_width_95_simultaneous": hi - lo}
 
 
+def thesis_free(rb):
+    """The thesis' 26 estimated parameters: the Table 4.2b entries that differ from nominal (a3 of bodies 2-6 is
+    not perturbed and not estimated; j2.a2, the thesis' redundant alpha_2,2, is among them)."""
+    return [n for n, a, b in zip(rb.names, np.asarray(rb.nominal), table_4_2b(rb)) if a != b]
+
+
+def run_condition(rb, a_true, q, free, start, runs, var_m=TABLE_4_2C[2][0], seed=3, chunk=CHUNK, max_steps=50):
+    """Run 3 Monte Carlo with the estimated set `free` (None: the base set) from `start` ("reference" or
+    "nominal"). Gauss-Newton needs a regular normal matrix: a rank-deficient set (the 26) is solved by LM."""
+    sd = float(np.sqrt(var_m))
+    solver = "lm" if free is not None or start == "nominal" else None
+    return un.monte_carlo(rb, a_true, q, "pose", noise={"position": sd, "orientation": sd}, runs=runs,
+                          known=("dev", "tool"), seed=seed, chunk=chunk, devices=[], sigma_position=sd,
+                          sigma_orientation=sd, solver=solver, start=start, max_steps=max_steps,
+                          free=None if free is None else list(free), base=free is None)
+
+
+def linear_covariance_svd(rb, a_true, q, mc, var_m=TABLE_4_2C[2][0], rtol=1e-10):
+    """Linear covariance (eq 3.28, measurement noise only, Wc = I) of the estimated set at the noise-free estimate:
+    sigma^2 (J^T J)^+ by the SVD of J with singular values below rtol times the largest cut. With Sigma_m = sigma^2 I
+    and weights 1/sigma it equals `un.linear_covariance`, whose pinv of the formed J^T W J lets round-off eigenvalues
+    (~1e-16 relative) of a rank-deficient set through as huge variances. Returns (covariance, rank of J)."""
+    sd = float(np.sqrt(var_m))
+    clean = jc.simulate(rb, a_true, q, "pose")
+    dev = clean.device
+    idx = np.array([rb.index(n) for n in mc.names])
+    x = np.concatenate([np.asarray(rb.nominal), np.asarray(dev.nominal)])
+    x[idx] = mc.reference
+    J = np.asarray(core.jacobian(rb, dev, jnp.asarray(x), jnp.asarray(clean.q), jnp.asarray(clean.y),
+                                 residual_weights(dev, sd, sd)))[:, idx]
+    _, sv, Vt = np.linalg.svd(J, full_matrices=False)
+    r = int(np.sum(sv > rtol * sv[0]))
+    return (Vt[:r].T / sv[:r] ** 2) @ Vt[:r], r
+
+
+def coverage(X, cov, dof):
+    """Share of the rows of X inside the 95 % ellipsoid of `cov` about their mean, radius sqrt(chi2_dof(0.95)) (the
+    thesis' eq 4.3 takes dof = 26, the number estimated), the distance through the pseudo-inverse (the null
+    directions of a rank-deficient `cov` do not enter). Returns (share, radius, radius holding 95 %)."""
+    d = X - X.mean(0)
+    d2 = np.einsum("ij,jk,ik->i", d, np.linalg.pinv(cov, rcond=1e-12, hermitian=True), d)
+    r2 = scipy.stats.chi2.ppf(0.95, dof)
+    return float(np.mean(d2 <= r2)), float(np.sqrt(r2)), float(np.sqrt(np.quantile(d2, 0.95)))
+
+
+def worst_eigenvalue(names, cov_lin, cov_mc, rank):
+    """Among the `rank` leading sorted eigenvalues (those the linear analysis gives), the one with the largest
+    MC/linear ratio: (1-based position, ratio, name of the largest entry of its MC eigenvector)."""
+    el, (lam, V) = np.sort(np.linalg.eigvalsh(cov_lin))[::-1], np.linalg.eigh(cov_mc)
+    order = np.argsort(lam)[::-1]
+    ratio = lam[order][:rank] / el[:rank]
+    k = int(np.argmax(ratio))
+    return k + 1, float(ratio[k]), names[int(np.argmax(np.abs(V[:, order[k]])))]
+
+
+def null_spread(names, cov_lin, cov_mc, rank):
+    """Monte Carlo variance in the null space of the linear covariance (directions the data do not determine) and
+    the parameter that carries most of it."""
+    _, V = np.linalg.eigh(cov_lin)
+    N = V[:, : len(V) - rank]
+    per_param = np.diag(N @ (N.T @ cov_mc @ N) @ N.T)
+    return float(per_param.sum()), names[int(np.argmax(per_param))] if rank < len(V) else None
+
+
+def accepted_draws(mc, ratio=1.5, k=5.0):
+    """Draws that reached the minimum (weighted residual norm within `ratio` of the median: LM's step test
+    fails on a rank-deficient set while the cost is already minimal) and pass eq 4.2 (median + k MAD of the
+    distance from the noise-free estimate). Returns (mask over draws, count failing the residual test)."""
+    norms = np.where(np.isfinite(mc.residual_norms), mc.residual_norms, np.inf)
+    reached = (norms <= ratio * np.median(norms)) & np.all(np.isfinite(mc.estimates), 1)
+    keep = np.zeros(len(norms), bool)
+    keep[np.flatnonzero(reached)] = un.reject_outliers(mc.estimates[reached], mc.reference, k)[0]
+    return keep, int((~reached).sum())
+
+
+def condition_row(mc, rb, a_true, q):
+    """Table 4.3 / Figures 4.16-4.17 quantities of one condition."""
+    keep, false_minima = accepted_draws(mc)
+    X = mc.estimates[keep]
+    cov_lin, rank = linear_covariance_svd(rb, a_true, q, mc)
+    cov_mc = np.cov(X.T)
+    inside, r95, r_emp = coverage(X, cov_lin, len(mc.names))
+    inside_r, r95_r, _ = coverage(X, cov_lin, rank)
+    pos, ratio, main = worst_eigenvalue(mc.names, cov_lin, cov_mc, rank)
+    null_var, null_main = null_spread(mc.names, cov_lin, cov_mc, rank)
+    nominal = np.asarray(rb.nominal)[[rb.index(n) for n in mc.names]]
+    r_o = np.linalg.norm(mc.estimates - nominal, axis=1)  # eq 4.2 about the nominal model (Figure 4.17)
+    far = r_o > np.median(r_o) + 5 * 1.4826 * np.median(np.abs(r_o - np.median(r_o)))
+    inside_s, _, r_emp_s = coverage(X, cov_mc, len(mc.names))  # about the sample covariance, as a chi-square plot
+    return {"estimated": len(mc.names), "linear_rank": rank, "draws": len(mc.estimates), "used": int(keep.sum()),
+            "solver_converged": int(mc.converged.sum()), "false_minima": false_minima,
+            "outliers_eq_4_2": int(len(keep) - keep.sum() - false_minima),
+            "r_o_from_nominal_median": float(np.median(r_o)), "r_o_from_nominal_95": float(np.quantile(r_o, 0.95)),
+            "r_o_from_nominal_max": float(r_o.max()), "far_from_nominal_5mad": int(far.sum()),
+            "inside_95_sample_cov": inside_s, "radius_holding_95_sample_cov": r_emp_s, "qq_correlation": un.chi2_qq(X)[2],
+            "similarity": un.similarity(cov_lin, cov_mc), "similarity_library_linear": un.similarity(mc.covariance_linear, cov_mc),
+            "inside_95": inside, "radius_95": r95, "radius_holding_95": r_emp, "inside_95_dof_rank": inside_r,
+            "radius_95_dof_rank": r95_r, "worst_eigenvalue": pos, "worst_ratio": ratio, "worst_eigenvector_main": main,
+            "mc_variance_in_linear_null_space": null_var, "null_space_main": null_main,
+            "eig_linear": np.sort(np.linalg.eigvalsh(cov_lin))[::-1][:rank], "eig_mc": np.sort(np.linalg.eigvalsh(cov_mc))[::-1],
+            "sd_mc": dict(zip(mc.names, np.sqrt(np.diag(cov_mc)))), "sd_linear": dict(zip(mc.names, np.sqrt(np.diag(cov_lin)))),
+            "iterations_median": float(np.median(mc.iterations)), "iterations_max": int(mc.iterations.max()),
+            "solver": mc.timings["solver"], "compile_s": mc.timings["compile_s"], "run_s": mc.timings["run_s"]}
+
+
+CONDITIONS = {"a_base14_truth": (False, "reference"), "b_thesis26_truth": (True, "reference"),
+              "c_thesis26_nominal": (True, "nominal"), "d_base14_nominal": (False, "nominal")}
+
+
+def thesis_conditions(runs, only=None, max_steps=50):
+    """Run 3 under conditions (a)-(d) (`CONDITIONS`: thesis' 26 or the base set, from the truth or from nominal)
+    with the same noise draws; writes montecarlo_fourbar3d_thesis_conditions.json after each condition (a solver
+    budget other than the default 50 steps is stored under the condition's key + "_<max_steps>_steps")."""
+    rb, a_true, q = setup()
+    res = {"robot": "fourbar3d", "n_poses": len(q), "var_m": TABLE_4_2C[2][0], "var_theta": 0.0, "draws": runs,
+           "thesis_26": thesis_free(rb), "thesis": {k: THESIS[k] for k in ("similarity", "inside_95", "radius_95",
+                                                                          "radius_holding_95", "parameters")},
+           "thesis_worst": {"eigenvalue": 4, "ratio": 27.6, "main": "alpha_2,2 (j2.a2)"}, "conditions": {}}
+    path = os.path.join(OUT, "montecarlo_fourbar3d_thesis_conditions.json")
+    if only and os.path.exists(path):  # a partial run adds to the conditions already there
+        with open(path) as f:
+            res["conditions"] = json.load(f).get("conditions", {})
+    for key, (thesis26, start) in CONDITIONS.items():
+        if only and key[0] not in only:
+            continue
+        t = time.perf_counter()
+        mc = run_condition(rb, a_true, q, thesis_free(rb) if thesis26 else None, start, runs, max_steps=max_steps)
+        row = {**condition_row(mc, rb, a_true, q), "wall_s": time.perf_counter() - t}
+        key = key if max_steps == 50 else f"{key}_{max_steps}_steps"
+        res["conditions"][key] = row
+        print(f"{key:<20} {row['estimated']} est (rank {row['linear_rank']})  similarity {row['similarity']:.3f}  "
+              f"inside95 {row['inside_95']:.3f} (sample {row['inside_95_sample_cov']:.3f})  "
+              f"r95 {row['radius_95']:.2f}/{row['radius_holding_95']:.2f}  worst eig "
+              f"#{row['worst_eigenvalue']} x{row['worst_ratio']:.2f} ({row['worst_eigenvector_main']})  null var "
+              f"{row['mc_variance_in_linear_null_space']:.2e} ({row['null_space_main']})  used {row['used']}  "
+              f"LM flag {row['solver_converged']}  outliers {row['outliers_eq_4_2']}  false minima {row['false_minima']}  "
+              f"its {row['iterations_median']:.0f}/"
+              f"{row['iterations_max']}  compile {row['compile_s']:.0f} s  total {row['wall_s']:.0f} s", flush=True)
+        os.makedirs(OUT, exist_ok=True)
+        write_json_atomic(path, res)
+    return res
+
+
 def plots(res, mc3, levels_m, levels_q):
     import matplotlib
 
@@ -356,5 +506,12 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--speed", action="store_true", help="also the identifications/s table (montecarlo.speed, 2 devices)")
+    ap.add_argument("--thesis-conditions", action="store_true", help="run 3 under conditions (a)-(d) only (issue 16 item 5)")
+    ap.add_argument("--draws", type=int, default=128, help="draws per condition with --thesis-conditions")
+    ap.add_argument("--only", default="", help="with --thesis-conditions: the letters of the conditions to run, e.g. ab")
+    ap.add_argument("--max-steps", type=int, default=50, help="with --thesis-conditions: solver step budget per draw")
     args = ap.parse_args()
-    main(args.quick, args.speed)
+    if args.thesis_conditions:
+        thesis_conditions(args.draws, args.only, args.max_steps)
+    else:
+        main(args.quick, args.speed)

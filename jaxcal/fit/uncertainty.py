@@ -242,11 +242,13 @@ class MonteCarloResult:
 
 def monte_carlo(robot, a_true, q, device="position", noise=None, runs: int = 100, known=(), seed: int = 0,
                 chunk: int = 64, devices=None, sigma_position=1e-3, sigma_orientation=1e-3,
-                max_steps: int = 50, solver: str | None = None, outlier_k: float = 5.0, start: str = "reference") -> MonteCarloResult:
+                max_steps: int = 50, solver: str | None = None, outlier_k: float = 5.0, start: str = "reference",
+                free=None, base: bool = True) -> MonteCarloResult:
     """`runs` noisy data sets of the robot with parameters a_true at joint readings q, each
     identified, as vmapped compiled LM solves in chunks of `chunk` (seed 004 §4.3.1).
 
-    The estimated set and the prior are those of the noise-free identification. Every run starts
+    The estimated set and the prior are those of the noise-free identification (`identify` with `free` and
+    `base`: base=False estimates every free parameter, as the thesis' 26-parameter four-bar study). Every run starts
     from the noise-free estimate (`start="reference"`: the spread due to noise, in a few
     iterations) or from the nominal robot (`start="nominal"`: the whole identification, about 20
     LM iterations), with a fixed iteration budget and its own convergence flag. The default solver
@@ -261,7 +263,8 @@ def monte_carlo(robot, a_true, q, device="position", noise=None, runs: int = 100
     noise = noise or {}
     s_q, s_p, s_r = (float(noise.get(k, 0.0)) for k in ("actuator", "position", "orientation"))
     clean = simulate(robot, a_true, q, dev)
-    ref = identify(robot, clean, known=known, sigma_position=sigma_position, sigma_orientation=sigma_orientation)
+    ref = identify(robot, clean, known=known, sigma_position=sigma_position, sigma_orientation=sigma_orientation,
+                   free=free, base=base)
     idx = ref.info["estimated_index"]
     cov_lin = linear_covariance(ref, clean, {"position": s_p, "orientation": s_r, "actuator": s_q})
     if devices is None:
