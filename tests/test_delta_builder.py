@@ -15,7 +15,7 @@ import jaxcal as jc
 from jaxcal.closure import core, forward_with_status
 from jaxcal.closure import delta as dl
 from jaxcal.robots import delta_robot
-from jaxcal.robots.builtin import _data_file, _free_list
+from jaxcal.robots.builtin import _data_file, free_list
 from jaxcal.robots.io import load_robot
 
 # rb, rn, n, m of the issue; arms at 10, 130, 250 deg; a narrower parallelogram and an offset tool
@@ -44,7 +44,7 @@ def test_nominal_geometry_reproduces_table_4_6():
     rb = delta_robot()
     assert rb.names == table.names and rb.bodies == table.bodies and rb.tip == table.tip
     assert rb.closure.pairs == dl.PAIRS and rb.closure.free == dl.FREE and rb.closure.geometry == dl.NOMINAL
-    assert list(np.array(rb.names)[rb.free_mask]) == _free_list("delta.yaml")
+    assert list(np.array(rb.names)[rb.free_mask]) == free_list("delta.yaml")
     assert rb.joint_names == ("theta1", "theta2", "theta3")
     np.testing.assert_array_equal(rb.home_np, [0.5] * 3)
     np.testing.assert_array_equal(np.stack([rb.q_min, rb.q_max]), [[-0.2] * 3, [1.4] * 3])

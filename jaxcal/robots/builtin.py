@@ -134,7 +134,8 @@ def tiago_arm():
 
 # --- Delta and Kiwibot (seed 004 Tables 4.6 and 4.4) ---------------------------------------------
 
-def _free_list(name: str):
+def free_list(name: str) -> list[str]:
+    """The `free` list (parameter names) of a built-in robot's YAML table, e.g. "delta.yaml"."""
     import yaml
 
     with open(_data_file(name)) as fh:
@@ -150,7 +151,7 @@ def delta():
     reduced square system (`jaxcal.closure.delta`)."""
     from jaxcal.closure.delta import with_delta_closure
 
-    return with_delta_closure(load_robot(_data_file("delta.yaml")), free=_free_list("delta.yaml"))
+    return with_delta_closure(load_robot(_data_file("delta.yaml")), free=free_list("delta.yaml"))
 
 
 @register("kiwibot")
@@ -162,4 +163,4 @@ def kiwibot():
     solution (`jaxcal.closure.kiwibot.closure_start`)."""
     from jaxcal.closure.kiwibot import with_kiwibot_closure
 
-    return with_kiwibot_closure(load_robot(_data_file("kiwibot.yaml"))).with_free(_free_list("kiwibot.yaml"))
+    return with_kiwibot_closure(load_robot(_data_file("kiwibot.yaml"))).with_free(free_list("kiwibot.yaml"))

@@ -26,7 +26,7 @@ import numpy as np
 from jaxcal.closure import delta as dl
 from jaxcal.closure.delta import NOMINAL, DeltaGeometry
 from jaxcal.robots.build import mcpc_robot
-from jaxcal.robots.builtin import _free_list
+from jaxcal.robots.builtin import free_list
 
 TABLE_4_6_HOME = (0.5, 0.5, 0.5)  # rad: delta.yaml's home and joint limits
 TABLE_4_6_LIMITS = (-0.2, 1.4)
@@ -85,7 +85,7 @@ def delta_robot(geometry: DeltaGeometry = NOMINAL, *, name: str = "delta", home=
     Table 4.6 with the nacelle points at full precision (`jaxcal.closure.delta.full_precision_nominal`)."""
     home, lo, hi = _settings(home, q_min, q_max)
     _check_reach(geometry, home, lo, hi)
-    names = tuple(_free_list("delta.yaml") if free is None else free)
+    names = tuple(free_list("delta.yaml") if free is None else free)
     robot = mcpc_robot(name, table_rows(geometry), actuated=dl.ACTUATORS, home=home, q_min=lo, q_max=hi,
                        joint_names=("theta1", "theta2", "theta3"), tip=dl.TOOL)
     unknown = sorted(set(names) - set(robot.names))
