@@ -64,7 +64,7 @@ def speed(name, runs, solver=None):
     exe, _ = core.compiled_solver(a0, args, rb, dev, settings)
     t = time.perf_counter()
     for d in datas:
-        jax.block_until_ready(exe(a0, {**args, "y": jnp.asarray(d.y)}))
+        jax.block_until_ready(exe(a0, {**args, "y": jnp.asarray(d.y)}, core.step_limit(settings.max_steps)))
     loop_rate = n_loop / (time.perf_counter() - t)
     return mc, loop_rate
 

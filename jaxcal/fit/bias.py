@@ -79,7 +79,7 @@ def heldout_scores(problem: core.Problem, cal: core.Calibration, settings: core.
         x = cal.x_frames
         for k, mu in enumerate(path):
             x = core.solve(train, x, cal.estimated, settings, mu, ref=cal.x_frames).x
-            r = core.weighted_residuals(problem.robot, problem.device, x, problem.q[held], problem.y[held], problem.w[held])
+            r = train.with_weights(problem.w * held[:, None]).residuals(x)  # the held-out samples, at the fits' shape
             scores[k] += float(np.sum(np.asarray(r) ** 2))
     return scores
 

@@ -110,10 +110,17 @@ def readings(robot: Robot, device: Device, a_full, q):
     return jax.vmap(device.read, (0, None))(forward(robot, a_full[:nr], q), a_full[nr:])
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1))
+@functools.partial(jax.jit, static_argnums=(0,))
+def misfit(device: Device, read, y, w):
+    """w * (measured - predicted) (N, m) from the predicted readings."""
+    return jax.vmap(device.residual)(read, y) * w
+
+
 def residuals(robot: Robot, device: Device, a_full, q, y, w):
-    """Weighted residuals (N, m) of all samples: w * (measured - predicted)."""
-    return jax.vmap(device.residual)(readings(robot, device, a_full, q), y) * w
+    """Weighted residuals (N, m) of all samples: w * (measured - predicted). Called from Python it runs two
+    compiled parts, `readings` (the kinematics, shared with the registration of the start and with predictions)
+    and `misfit`; inside a traced function (the solver) both are inlined."""
+    return misfit(device, readings(robot, device, a_full, q), y, w)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -282,10 +289,12 @@ def solver_settings(solver="lm", max_steps: int | None = None, rtol: float | Non
     return dataclasses.replace(Settings(), **{k: v for k, v in given.items() if v is not None})
 
 
-def _solve_one(x0, args, model, settings: Settings):
-    """One LM run from x0: in z = (x - a_ref) / x_scale (`stacked_scaled`), or in the basis args["S"] when
-    args has one (`stacked_basis`). Returns (x, converged, steps, final cost, cost history): the history is
-    `lm.LMResult.history` for the core's LM, empty (shape (0,)) for the optimistix solvers."""
+def _solve_one(x0, args, limit, model, settings: Settings):
+    """One LM run from x0, at most min(settings.max_steps, limit) iterations: in z = (x - a_ref) / x_scale
+    (`stacked_scaled`), or in the basis args["S"] when args has one (`stacked_basis`). Returns (x, converged,
+    steps, final cost, cost history, r, J): the history is `lm.LMResult.history` for the core's LM, empty (shape
+    (0,)) for the optimistix solvers; r and J are the stacked residual and its Jacobian in z at x (the core's LM;
+    empty for the others), which `evaluate` reads with limit 0."""
     slv = make_solver(settings.solver, settings.rtol, settings.atol)
     reverse = jacobian_mode(model) == "reverse"
     if "S" in args:
@@ -299,21 +308,28 @@ def _solve_one(x0, args, model, settings: Settings):
         z0 = (x0 - args["a_ref"]) / args["x_scale"]
         to_x = lambda z: args["a_ref"] + args["x_scale"] * z  # noqa: E731
     if isinstance(slv, LevenbergMarquardt):
-        z, converged, steps, cost, history = slv(fn, z0, args, settings.max_steps, jac)
-        return to_x(z), converged, steps, cost, history
+        res = slv(fn, z0, args, settings.max_steps, jac, limit)
+        return to_x(res.z), res.converged, res.steps, res.cost, res.history, res.r, res.J
     sol = optx.least_squares(fn, slv, z0, args, max_steps=settings.max_steps, throw=False)
+    empty = jnp.zeros(0, z0.dtype)
     return (to_x(sol.value), sol.result == optx.RESULTS.successful, sol.stats["num_steps"], jnp.sum(fn(sol.value, args) ** 2),
-            jnp.zeros(0, z0.dtype))
+            empty, empty, empty)
 
 
 @functools.partial(jax.jit, static_argnames=("model", "settings", "batched"))
-def _solve_jit(x0, args, *, model, settings, batched):
-    """One solve, or a vmapped batch: `batched` names the entries of args (and "x0") with a leading batch axis."""
-    one = functools.partial(_solve_one, model=model, settings=settings)
+def _solve_jit(x0, args, limit, *, model, settings, batched):
+    """One solve (x, converged, steps, cost, history, r, J: `_solve_one`), or a vmapped batch without r and J
+    (their size grows with the batch): `batched` names the entries of args (and "x0") with a leading batch axis."""
+    one = functools.partial(_solve_one, limit=limit, model=model, settings=settings)
     if not batched:
         return one(x0, args)
     axes = {k: (0 if k in batched else None) for k in args}
-    return jax.vmap(one, (0 if "x0" in batched else None, axes))(x0, args)
+    return jax.vmap(lambda x, a: one(x, a)[:5], (0 if "x0" in batched else None, axes))(x0, args)
+
+
+def step_limit(n: int):
+    """The iteration cap argument of a compiled solver (one dtype, so one executable)."""
+    return jnp.asarray(n, jnp.int32)
 
 
 _COMPILED: collections.OrderedDict = collections.OrderedDict()
@@ -322,9 +338,10 @@ compiled.register(_COMPILED.clear)
 
 
 def compiled_model_solver(x0, args, model, settings: Settings, batched=()):
-    """(executable, seconds spent compiling: 0 when reused). One compile per residual model, settings,
-    argument shapes and placement (arrays committed to another JAX device get their own executable);
-    at most _COMPILED_MAX are kept (robots hash by identity, so the cache is bounded)."""
+    """(executable, seconds spent compiling: 0 when reused), called as exe(x0, args, limit) with limit the cap
+    on iterations (`step_limit`). One compile per residual model, settings, argument shapes and placement (arrays
+    committed to another JAX device get their own executable); at most _COMPILED_MAX are kept (robots hash by
+    identity, so the cache is bounded)."""
     shapes = jax.tree_util.tree_map(lambda v: (jnp.shape(v), jnp.result_type(v)), (x0, args))
     placed = [str(v.sharding) for v in jax.tree_util.tree_leaves((x0, args)) if isinstance(v, jax.Array) and v.committed]
     key = (model, settings, tuple(batched), str(shapes), tuple(sorted(set(placed))))
@@ -332,11 +349,27 @@ def compiled_model_solver(x0, args, model, settings: Settings, batched=()):
         _COMPILED.move_to_end(key)
         return _COMPILED[key], 0.0
     t = time.perf_counter()
-    exe = _solve_jit.lower(x0, args, model=model, settings=settings, batched=tuple(batched)).compile()
+    exe = _solve_jit.lower(x0, args, step_limit(0), model=model, settings=settings, batched=tuple(batched)).compile()
     _COMPILED[key] = exe
     if len(_COMPILED) > _COMPILED_MAX:
         _COMPILED.popitem(last=False)
     return exe, time.perf_counter() - t
+
+
+def evaluator(problem: "Problem", args, settings: Settings | None = None):
+    """(executable, compile seconds) of the core LM solver for the problem's arguments `args`, which
+    `Problem.jacobian` runs for 0 iterations to read the Jacobian: with `settings` when they select the core LM
+    (so that the solves of `calibrate` share the program), else one already compiled for these shapes with any
+    tolerances, else `Settings()`'s."""
+    if settings is not None and isinstance(make_solver(settings.solver, settings.rtol, settings.atol), LevenbergMarquardt):
+        return compiled_model_solver(jnp.zeros(len(problem.names)), args, problem.model, settings)
+    shapes = str(jax.tree_util.tree_map(lambda v: (jnp.shape(v), jnp.result_type(v)), (jnp.zeros(len(problem.names)), args)))
+    for key in reversed(_COMPILED):
+        model, done, batched, done_shapes, placed = key
+        if (model == problem.model and not batched and done_shapes == shapes and not placed
+                and isinstance(make_solver(done.solver, done.rtol, done.atol), LevenbergMarquardt)):
+            return _COMPILED[key], 0.0
+    return compiled_model_solver(jnp.zeros(len(problem.names)), args, problem.model, Settings())
 
 
 def compiled_solver(x0, args, robot, device, settings: Settings, batched=()):
@@ -349,11 +382,6 @@ def _model_rows(model, x, q, y, cov, w):
     return model.residuals(x, q, y, cov, w)
 
 
-@functools.partial(jax.jit, static_argnums=(0,))
-def _model_jacobian(model, x, q, y, cov, w):
-    return data_residual_and_jacobian(model, x, q, y, cov, w)[1]
-
-
 def per_sample(w, n: int) -> np.ndarray:
     """Weights (m,) of every sample as the (n, m) array (float64, not weak-typed): one argument shape for
     the compiled residuals and Jacobian whether a caller passes per-component or per-sample weights (on the
@@ -363,8 +391,10 @@ def per_sample(w, n: int) -> np.ndarray:
 
 
 def model_residuals(model, x, q, y, cov, w) -> np.ndarray:
-    """The residual model's weighted residuals (N, m) at x, as a numpy array."""
-    return np.asarray(_model_rows(model, *(jnp.asarray(v) for v in (x, q, y, cov, per_sample(w, len(q))))))
+    """The residual model's weighted residuals (N, m) at x, as a numpy array. The robot measured by a device
+    runs its own compiled parts (`residuals`); another model is compiled whole."""
+    rows = model.residuals if isinstance(model, RobotDevice) else functools.partial(_model_rows, model)
+    return np.asarray(rows(*(jnp.asarray(v) for v in (x, q, y, cov, per_sample(w, len(q))))))
 
 
 def no_covariates(n: int) -> np.ndarray:
@@ -378,9 +408,11 @@ def weighted_residuals(robot, device, a_full, q, y, w) -> np.ndarray:
 
 
 def jacobian(robot, device, a_full, q, y, w) -> np.ndarray:
-    """d(weighted residual)/d(a_full), (N*m, P), by forward-mode autodiff."""
-    return np.asarray(_model_jacobian(RobotDevice(robot, device), *(jnp.asarray(v) for v in
-                                                                     (a_full, q, y, no_covariates(len(q)), per_sample(w, len(q))))))
+    """d(weighted residual)/d(a_full), (N*m, P) (`Problem.jacobian`)."""
+    P = len(robot.names) + len(device.names)
+    free, no_bound = np.ones(P, bool), np.full(P, np.inf)
+    return Problem(robot, device, np.asarray(q, float), np.asarray(y, float), per_sample(w, len(q)), free,
+                   np.asarray(a_full, float), -no_bound, no_bound).jacobian(a_full)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -443,8 +475,23 @@ class Problem:
         return model_residuals(self.model, x, self.q, self.y, self.cov, self.w)
 
     def jacobian(self, x) -> np.ndarray:
-        """d(weighted residual)/dx (N*m, P) at the full vector x, by forward-mode autodiff."""
-        return np.asarray(_model_jacobian(self.model, *(jnp.asarray(v) for v in (x, self.q, self.y, self.cov, self.w))))
+        """d(weighted residual)/dx (N*m, P) at the full vector x: the data rows of the Jacobian that the solver's
+        executable (`evaluator`) returns after 0 iterations from x, every entry estimated at unit scale (the
+        reverse-mode data Jacobian of `data_residual_and_jacobian` for open chains, forward mode through closures).
+        One compiled program for the solves and the Jacobian: on the Delta the Jacobian compiled apart took ~7 s."""
+        P = len(self.names)
+        args = self.solver_arrays(x, np.ones(P), self.w, 0.0, np.ones(P))
+        exe, _ = evaluator(self, args)
+        J = exe(jnp.asarray(x, jnp.float64), args, step_limit(0))[6]
+        return np.asarray(J[:self.w.size])
+
+    def solver_arrays(self, ref, mask, w, mu, scale) -> dict:
+        """The solver's arguments: prior ref (P,), estimated mask (P,), data weights w (N, m), bias mu (a number or
+        (P,)), unit of z per entry scale (P,) (`stacked_scaled`), with the problem's data and bounds."""
+        return dict(a_ref=jnp.asarray(ref, jnp.float64), mask=jnp.asarray(mask, jnp.float64), q=jnp.asarray(self.q),
+                    y=jnp.asarray(self.y), cov=jnp.asarray(self.cov), w=jnp.asarray(w, jnp.float64),
+                    mu=jnp.asarray(mu, jnp.float64), x_scale=jnp.asarray(scale, jnp.float64), lb=jnp.asarray(self.lb),
+                    ub=jnp.asarray(self.ub))
 
     def args(self, estimated, mu, ref) -> dict:
         """Solver arguments: estimate the indices `estimated`, bias mu (a number, or one per entry) toward
@@ -457,9 +504,7 @@ class Problem:
         r = self.residuals(ref)
         used = self.used
         rms = np.sqrt(np.sum(r[used] ** 2) / max(r[used].size, 1)) if used.any() else 1.0
-        return dict(a_ref=jnp.asarray(ref), mask=jnp.asarray(mask), q=jnp.asarray(self.q), y=jnp.asarray(self.y),
-                    cov=jnp.asarray(self.cov), w=jnp.asarray(self.w / max(rms, 1e-12)), mu=jnp.asarray(mu, jnp.float64),
-                    x_scale=jnp.asarray(self.x_scale), lb=jnp.asarray(self.lb), ub=jnp.asarray(self.ub))
+        return self.solver_arrays(ref, mask, self.w / max(rms, 1e-12), mu, self.x_scale)
 
     def batch_args(self, estimated, mu, refs, weights) -> dict:
         """Arguments of a batch of solves of this problem that differ in their prior refs (B, P) and data
@@ -549,7 +594,7 @@ def registered_frame(problem: Problem, a_full) -> np.ndarray | None:
     x = np.array(a_full, float)
     for idx, _ in blocks:
         x[robot.n_params + idx] = 0.0  # identity frames: the readings are then the model's points
-    pred = np.asarray(readings(robot, device, jnp.asarray(x), jnp.asarray(problem.q[used])))
+    pred = np.asarray(readings(robot, device, jnp.asarray(x), jnp.asarray(problem.q)))[used]  # the fits' shape: one compile
     P_all = device.predicted_points(pred)
     registered = False
     for idx, mask in blocks:
@@ -607,7 +652,7 @@ def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, 
     args = problem.args(estimated, mu, ref)
     x0 = jnp.asarray(x0, jnp.float64)
     exe, dt = compiled_model_solver(x0, args, problem.model, settings)
-    x, ok, steps, cost, history = exe(x0, args)
+    x, ok, steps, cost, history, _, _ = exe(x0, args, step_limit(settings.max_steps))
     x = np.where(np.asarray(args["mask"]) > 0, np.asarray(x), np.asarray(ref))
     history = np.asarray(history)
     return Solution(x, bool(ok), int(steps), float(cost), dt, history[np.isfinite(history)], np.asarray(estimated, int))
@@ -618,7 +663,7 @@ def solve_batch(problem: Problem, x0s, args, settings: Settings, batched) -> tup
     args (and "x0" for a batch of starts; `Problem.batch_args` for folds with their own priors).
     Returns (x (B, P), ok (B,), steps (B,), cost (B,), compile_s)."""
     exe, dt = compiled_model_solver(x0s, args, problem.model, settings, batched)
-    x, ok, steps, cost, _ = exe(x0s, args)
+    x, ok, steps, cost, _ = exe(x0s, args, step_limit(settings.max_steps))
     return np.asarray(x), np.asarray(ok), np.asarray(steps), np.asarray(cost), dt
 
 
@@ -770,10 +815,12 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
             started.x_frames, started.registered, started.J0, started.frames_converged, 0.0, started.frames_fitted)
     else:
         say("start: device frame registered, then fitted with the nominal robot")
+        P = len(problem.names)  # the solver's program, compiled first: `Problem.jacobian` runs it too
+        _, compile_s = evaluator(problem, problem.solver_arrays(problem.a_ref, np.ones(P), problem.w, 0.0, np.ones(P)), settings)
         x_frames, frames_sol, registered = start(problem, settings)
         J0 = problem.jacobian(x_frames)
         frames_ok = True if frames_sol is None else frames_sol.converged
-        compile_s = 0.0 if frames_sol is None else frames_sol.compile_s
+        compile_s += 0.0 if frames_sol is None else frames_sol.compile_s
         frames_fitted = np.zeros(0, int) if frames_sol is None else frames_sol.estimated
     est, undetermined, no_effect, regrouped = choose_estimated(problem, J0, base, base_tol)
     x, iterations, converged, histories = x_frames, 0, True, []
@@ -829,7 +876,8 @@ def drop_unclosed(robot: Robot, a0, q) -> np.ndarray:
 
 
 __all__ = ["Calibration", "Problem", "RobotDevice", "SOLVERS", "Settings", "Solution", "calibrate", "choose_estimated",
-           "compiled_model_solver", "compiled_solver", "drop_unclosed", "f_ratio", "frames_estimated", "jacobian", "linear_f_ratio",
+           "compiled_model_solver", "compiled_solver", "drop_unclosed", "evaluator", "f_ratio", "frames_estimated",
+           "jacobian", "linear_f_ratio", "misfit",
            "make_problem", "make_solver", "model_residuals", "model_stacked", "no_covariates", "polish", "readings",
            "registered_frame", "residuals", "rigid_registration", "similarity_registration", "solve", "solve_batch",
-           "solver_settings", "stacked", "stacked_basis", "stacked_scaled", "start", "weighted_residuals", "x_scale"]
+           "solver_settings", "stacked", "step_limit", "stacked_basis", "stacked_scaled", "start", "weighted_residuals", "x_scale"]

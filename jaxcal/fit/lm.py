@@ -42,13 +42,16 @@ LAM_MAX = 1e30  # damping past which no step can change anything: stop, unconver
 
 class LMResult(NamedTuple):
     """z: the estimate; converged; steps: iterations taken (accepted and rejected); cost: |r(z)|^2; history: |r|^2
-    at z0 and after each iteration (a rejected step repeats the cost), NaN past the last, shape (max_steps + 1,)."""
+    at z0 and after each iteration (a rejected step repeats the cost), NaN past the last, shape (max_steps + 1,);
+    r, J: the residual and its Jacobian at z (with a step limit of 0: at z0, the core's evaluation of J)."""
 
     z: jnp.ndarray
     converged: jnp.ndarray
     steps: jnp.ndarray
     cost: jnp.ndarray
     history: jnp.ndarray
+    r: jnp.ndarray
+    J: jnp.ndarray
 
 
 def residual_and_jacobian(fn: Callable, z, args):
@@ -126,9 +129,12 @@ def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first) -> 
 
 
 def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: float,
-                  jac: Callable | None = None) -> LMResult:
+                  jac: Callable | None = None, limit=None) -> LMResult:
     """Minimise |fn(z, args)|^2 from z0 by Levenberg-Marquardt (see the module docstring); jac as in `init`.
-    The loop's first turn evaluates r and J at z0 (`advance` with first=True)."""
+    The loop's first turn evaluates r and J at z0 (`advance` with first=True). limit: a traced cap on the
+    iterations below max_steps (max_steps sizes the history, so it is static); 0 returns r and J at z0, which is
+    how the core evaluates its Jacobian with the solver's executable instead of compiling the Jacobian again."""
+    cap = max_steps if limit is None else jnp.minimum(max_steps, limit)
     rj = jac or functools.partial(residual_and_jacobian, fn)
     r_shape, J_shape = jax.eval_shape(rj, z0, args)
     blank = LMState(z0, jnp.zeros(r_shape.shape, r_shape.dtype), jnp.zeros(J_shape.shape, J_shape.dtype),
@@ -139,9 +145,9 @@ def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: 
         s = advance(rj, s, args, rtol, atol, first)
         return s, hist.at[s.steps].set(s.r @ s.r), jnp.asarray(False)
 
-    s, hist, _ = jax.lax.while_loop(lambda c: c[2] | (~c[0].converged & (c[0].steps < max_steps) & (c[0].lam < LAM_MAX)),
+    s, hist, _ = jax.lax.while_loop(lambda c: c[2] | (~c[0].converged & (c[0].steps < cap) & (c[0].lam < LAM_MAX)),
                                     body, (blank, jnp.full(max_steps + 1, jnp.nan, z0.dtype), jnp.asarray(True)))
-    return LMResult(s.z, s.converged, s.steps, s.r @ s.r, hist)
+    return LMResult(s.z, s.converged, s.steps, s.r @ s.r, hist, s.r, s.J)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,8 +157,8 @@ class LevenbergMarquardt:
     rtol: float
     atol: float
 
-    def __call__(self, fn: Callable, z0, args, max_steps: int, jac: Callable | None = None) -> LMResult:
-        return least_squares(fn, z0, args, max_steps=max_steps, rtol=self.rtol, atol=self.atol, jac=jac)
+    def __call__(self, fn: Callable, z0, args, max_steps: int, jac: Callable | None = None, limit=None) -> LMResult:
+        return least_squares(fn, z0, args, max_steps=max_steps, rtol=self.rtol, atol=self.atol, jac=jac, limit=limit)
 
 
 __all__ = ["LMResult", "LMState", "LevenbergMarquardt", "damped_step",
