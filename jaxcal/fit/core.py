@@ -329,7 +329,7 @@ def _solve_jit(x0, args, limit, *, model, settings, batched):
 
 def step_limit(n: int):
     """The iteration cap argument of a compiled solver (one dtype, so one executable)."""
-    return jnp.asarray(n, jnp.int32)
+    return np.asarray(n, np.int32)
 
 
 _COMPILED: collections.OrderedDict = collections.OrderedDict()
@@ -337,14 +337,21 @@ _COMPILED_MAX = 64  # compiled solvers kept per process (least recently used fir
 compiled.register(_COMPILED.clear)
 
 
+def signature(tree) -> tuple:
+    """What selects a compiled program among arguments: the tree's structure and each leaf's shape, dtype and
+    weak typing (numpy and JAX arrays of one shape and dtype alike)."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    return (treedef, *((np.shape(v), str(getattr(v, "dtype", np.result_type(v))), bool(getattr(v, "weak_type", False)))
+                       for v in leaves))
+
+
 def compiled_model_solver(x0, args, model, settings: Settings, batched=()):
     """(executable, seconds spent compiling: 0 when reused), called as exe(x0, args, limit) with limit the cap
     on iterations (`step_limit`). One compile per residual model, settings, argument shapes and placement (arrays
     committed to another JAX device get their own executable); at most _COMPILED_MAX are kept (robots hash by
     identity, so the cache is bounded)."""
-    shapes = jax.tree_util.tree_map(lambda v: (jnp.shape(v), jnp.result_type(v)), (x0, args))
     placed = [str(v.sharding) for v in jax.tree_util.tree_leaves((x0, args)) if isinstance(v, jax.Array) and v.committed]
-    key = (model, settings, tuple(batched), str(shapes), tuple(sorted(set(placed))))
+    key = (model, settings, tuple(batched), signature((x0, args)), tuple(sorted(set(placed))))
     if key in _COMPILED:
         _COMPILED.move_to_end(key)
         return _COMPILED[key], 0.0
@@ -361,15 +368,16 @@ def evaluator(problem: "Problem", args, settings: Settings | None = None):
     `Problem.jacobian` runs for 0 iterations to read the Jacobian: with `settings` when they select the core LM
     (so that the solves of `calibrate` share the program), else one already compiled for these shapes with any
     tolerances, else `Settings()`'s."""
+    x0 = np.zeros(len(problem.names))
     if settings is not None and isinstance(make_solver(settings.solver, settings.rtol, settings.atol), LevenbergMarquardt):
-        return compiled_model_solver(jnp.zeros(len(problem.names)), args, problem.model, settings)
-    shapes = str(jax.tree_util.tree_map(lambda v: (jnp.shape(v), jnp.result_type(v)), (jnp.zeros(len(problem.names)), args)))
+        return compiled_model_solver(x0, args, problem.model, settings)
+    shapes = signature((x0, args))
     for key in reversed(_COMPILED):
         model, done, batched, done_shapes, placed = key
         if (model == problem.model and not batched and done_shapes == shapes and not placed
                 and isinstance(make_solver(done.solver, done.rtol, done.atol), LevenbergMarquardt)):
             return _COMPILED[key], 0.0
-    return compiled_model_solver(jnp.zeros(len(problem.names)), args, problem.model, Settings())
+    return compiled_model_solver(x0, args, problem.model, Settings())
 
 
 def compiled_solver(x0, args, robot, device, settings: Settings, batched=()):
@@ -394,7 +402,7 @@ def model_residuals(model, x, q, y, cov, w) -> np.ndarray:
     """The residual model's weighted residuals (N, m) at x, as a numpy array. The robot measured by a device
     runs its own compiled parts (`residuals`); another model is compiled whole."""
     rows = model.residuals if isinstance(model, RobotDevice) else functools.partial(_model_rows, model)
-    return np.asarray(rows(*(jnp.asarray(v) for v in (x, q, y, cov, per_sample(w, len(q))))))
+    return np.asarray(rows(*(np.asarray(v, float) for v in (x, q, y, cov, per_sample(w, len(q))))))
 
 
 def no_covariates(n: int) -> np.ndarray:
@@ -482,16 +490,15 @@ class Problem:
         P = len(self.names)
         args = self.solver_arrays(x, np.ones(P), self.w, 0.0, np.ones(P))
         exe, _ = evaluator(self, args)
-        J = exe(jnp.asarray(x, jnp.float64), args, step_limit(0))[6]
-        return np.asarray(J[:self.w.size])
+        J = exe(np.asarray(x, np.float64), args, step_limit(0))[6]
+        return np.asarray(J)[:self.w.size]
 
     def solver_arrays(self, ref, mask, w, mu, scale) -> dict:
         """The solver's arguments: prior ref (P,), estimated mask (P,), data weights w (N, m), bias mu (a number or
         (P,)), unit of z per entry scale (P,) (`stacked_scaled`), with the problem's data and bounds."""
-        return dict(a_ref=jnp.asarray(ref, jnp.float64), mask=jnp.asarray(mask, jnp.float64), q=jnp.asarray(self.q),
-                    y=jnp.asarray(self.y), cov=jnp.asarray(self.cov), w=jnp.asarray(w, jnp.float64),
-                    mu=jnp.asarray(mu, jnp.float64), x_scale=jnp.asarray(scale, jnp.float64), lb=jnp.asarray(self.lb),
-                    ub=jnp.asarray(self.ub))
+        f64 = functools.partial(np.asarray, dtype=np.float64)  # numpy: a compiled call takes them as they are
+        return dict(a_ref=f64(ref), mask=f64(mask), q=f64(self.q), y=f64(self.y), cov=f64(self.cov), w=f64(w), mu=f64(mu),
+                    x_scale=f64(scale), lb=f64(self.lb), ub=f64(self.ub))
 
     def args(self, estimated, mu, ref) -> dict:
         """Solver arguments: estimate the indices `estimated`, bias mu (a number, or one per entry) toward
@@ -594,7 +601,7 @@ def registered_frame(problem: Problem, a_full) -> np.ndarray | None:
     x = np.array(a_full, float)
     for idx, _ in blocks:
         x[robot.n_params + idx] = 0.0  # identity frames: the readings are then the model's points
-    pred = np.asarray(readings(robot, device, jnp.asarray(x), jnp.asarray(problem.q)))[used]  # the fits' shape: one compile
+    pred = np.asarray(readings(robot, device, x, np.asarray(problem.q, float)))[used]  # the fits' shape: one compile
     P_all = device.predicted_points(pred)
     registered = False
     for idx, mask in blocks:
@@ -605,6 +612,7 @@ def registered_frame(problem: Problem, a_full) -> np.ndarray | None:
     return x if registered else None
 
 
+_log_so3 = jax.jit(log_so3)  # compiled: op by op it took ~2 ms of a 30 ms identify
 UNIT_FIT = 0.2  # a scaled registration names a unit mistake only when its residual is below this share of the spread
 
 
@@ -628,7 +636,7 @@ def _registration(device: Device, P, Y) -> np.ndarray | None:
         raise DataError(f"the {device.kind} readings fit the robot only after scaling them by {s:.4g}: they look like {unit}, "
                         "not metres; give the unit (Dataset.from_csv(..., length_unit=...) or a '# units:' line)")
     R, t = rigid_registration(P, Y)
-    return np.concatenate([t, np.asarray(log_so3(jnp.asarray(R)))])
+    return np.concatenate([t, np.asarray(_log_so3(np.asarray(R, float)))])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -650,7 +658,7 @@ def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, 
     """Minimise the stacked residual over the `estimated` indices from x0, with bias mu toward ref (default x0)."""
     ref = x0 if ref is None else ref
     args = problem.args(estimated, mu, ref)
-    x0 = jnp.asarray(x0, jnp.float64)
+    x0 = np.asarray(x0, np.float64)
     exe, dt = compiled_model_solver(x0, args, problem.model, settings)
     x, ok, steps, cost, history, _, _ = exe(x0, args, step_limit(settings.max_steps))
     x = np.where(np.asarray(args["mask"]) > 0, np.asarray(x), np.asarray(ref))
