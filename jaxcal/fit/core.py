@@ -42,11 +42,13 @@ import numpy as np
 import optimistix as optx
 
 from jaxcal import compiled
+from jaxcal.closure.core import forward_with_status
 from jaxcal.fit.base import base_set
 from jaxcal.fit.csvfile import DataError
 from jaxcal.fit.lm import LevenbergMarquardt, residual_and_jacobian
 from jaxcal.forward import forward
 from jaxcal.kin.model import Robot
+from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import log_so3
 from jaxcal.measure.devices import Device
 from jaxcal.names import check_names
@@ -111,15 +113,32 @@ def readings(robot: Robot, device: Device, a_full, q):
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
+def _read_poses(device: Device, tool: Pose, d):
+    return jax.vmap(device.read, (0, None))(tool, d)
+
+
+def predicted(robot: Robot, device: Device, a_full, q) -> np.ndarray:
+    """`readings` evaluated from Python, without derivative. A closed mechanism's tool comes from one closure
+    solve (`jaxcal.closure.forward_with_status`: the solve that the fits' unclosed-sample check compiles anyway,
+    then the open tree at the closed joints), not from the differentiable closed forward, whose compile took
+    ~4 s on the Delta for every sample count; an open chain runs `readings` itself."""
+    a_full, q = np.asarray(a_full, float), np.asarray(q, float)
+    if robot.closure is None:
+        return np.asarray(readings(robot, device, a_full, q))
+    device.check_robot(robot)
+    tool, _ = forward_with_status(robot, a_full[:robot.n_params], q)
+    return np.asarray(_read_poses(device, tool, a_full[robot.n_params:]))
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
 def misfit(device: Device, read, y, w):
     """w * (measured - predicted) (N, m) from the predicted readings."""
     return jax.vmap(device.residual)(read, y) * w
 
 
 def residuals(robot: Robot, device: Device, a_full, q, y, w):
-    """Weighted residuals (N, m) of all samples: w * (measured - predicted). Called from Python it runs two
-    compiled parts, `readings` (the kinematics, shared with the registration of the start and with predictions)
-    and `misfit`; inside a traced function (the solver) both are inlined."""
+    """Weighted residuals (N, m) of all samples: w * (measured - predicted), differentiable (the solver traces it:
+    `readings`, then `misfit`). From Python, `weighted_residuals` evaluates it through `predicted`."""
     return misfit(device, readings(robot, device, a_full, q), y, w)
 
 
@@ -401,8 +420,10 @@ def per_sample(w, n: int) -> np.ndarray:
 def model_residuals(model, x, q, y, cov, w) -> np.ndarray:
     """The residual model's weighted residuals (N, m) at x, as a numpy array. The robot measured by a device
     runs its own compiled parts (`residuals`); another model is compiled whole."""
-    rows = model.residuals if isinstance(model, RobotDevice) else functools.partial(_model_rows, model)
-    return np.asarray(rows(*(np.asarray(v, float) for v in (x, q, y, cov, per_sample(w, len(q))))))
+    x, q, y, cov, w = (np.asarray(v, float) for v in (x, q, y, cov, per_sample(w, len(q))))
+    if isinstance(model, RobotDevice):  # the readings shared with the registration and predictions (`predicted`)
+        return np.asarray(misfit(model.device, predicted(model.robot, model.device, x, q), y, w))
+    return np.asarray(_model_rows(model, x, q, y, cov, w))
 
 
 def no_covariates(n: int) -> np.ndarray:
@@ -601,7 +622,7 @@ def registered_frame(problem: Problem, a_full) -> np.ndarray | None:
     x = np.array(a_full, float)
     for idx, _ in blocks:
         x[robot.n_params + idx] = 0.0  # identity frames: the readings are then the model's points
-    pred = np.asarray(readings(robot, device, x, np.asarray(problem.q, float)))[used]  # the fits' shape: one compile
+    pred = predicted(robot, device, x, problem.q)[used]  # the fits' shape: one compile
     P_all = device.predicted_points(pred)
     registered = False
     for idx, mask in blocks:
@@ -886,6 +907,6 @@ def drop_unclosed(robot: Robot, a0, q) -> np.ndarray:
 __all__ = ["Calibration", "Problem", "RobotDevice", "SOLVERS", "Settings", "Solution", "calibrate", "choose_estimated",
            "compiled_model_solver", "compiled_solver", "drop_unclosed", "evaluator", "f_ratio", "frames_estimated",
            "jacobian", "linear_f_ratio", "misfit",
-           "make_problem", "make_solver", "model_residuals", "model_stacked", "no_covariates", "polish", "readings",
+           "make_problem", "make_solver", "model_residuals", "model_stacked", "no_covariates", "polish", "predicted", "readings",
            "registered_frame", "residuals", "rigid_registration", "similarity_registration", "solve", "solve_batch",
            "solver_settings", "stacked", "step_limit", "stacked_basis", "stacked_scaled", "start", "weighted_residuals", "x_scale"]

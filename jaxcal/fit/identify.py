@@ -168,13 +168,13 @@ class FitResult:
 
     def predict(self, q):
         """Readings the fitted model expects at joint values q, in the device frame."""
-        return np.asarray(core.readings(self.robot, self.device, self.a_full, jnp.atleast_2d(jnp.asarray(q, dtype=jnp.float64))))
+        return core.predicted(self.robot, self.device, self.a_full, np.atleast_2d(np.asarray(q, dtype=np.float64)))
 
     def errors(self, data: Dataset):
         """Per-sample (position m, orientation rad) errors of this model on a dataset."""
         w = residual_weights(self.device, 1.0, 1.0)
         y = readings_for(self.device, data)
-        r = residuals(self.robot, self.device, self.a_full, jnp.asarray(data.q), jnp.asarray(y), w)
+        r = core.weighted_residuals(self.robot, self.device, self.a_full, data.q, y, w)
         pe, oe = self.device.split_errors(r)
         return (None if pe is None else np.asarray(pe)), (None if oe is None else np.asarray(oe))
 
