@@ -4,7 +4,10 @@ measured in the same process, compile time apart, medians.
 - forward kinematics: jaxcal's jit(vmap) vs the hand-vectorised numpy model and a Python loop (benchmarks/fk.py);
 - identification: the whole `jc.identify` call and its core run (`timings["run_s"]`: start, base set, solves, final
   Jacobian) vs scipy's MINPACK LM with finite differences on the same unknowns from the same start
-  (benchmarks/identify.py), with jaxcal's LM and optimistix's.
+  (benchmarks/identify.py), with jaxcal's LM and optimistix's;
+- identification of the real TALOS arm (61 mocap positions) and of the Delta (125 simulated positions), default
+  options: the whole `jc.identify` call vs scipy's MINPACK LM with finite differences on jaxcal's own compiled
+  residual, same unknowns (the ones identify estimated), same start (identify's frames-only point).
 
 Writes benchmarks/results/bench.md (atomically) and prints it. Run: python benchmarks/table.py [--max-n N]
 """
@@ -20,7 +23,12 @@ import time
 import fk
 import identify
 import jax
+import numpy as np
+import scipy.optimize
+from _common import first_and_median, median_time
 
+import jaxcal as jc
+from jaxcal.fit import core
 from jaxcal.report import write_text_atomic
 
 
@@ -52,6 +60,41 @@ def identify_rows() -> list[str]:
     return rows
 
 
+def scipy_on_own_residual(robot, data, fit, sigma):
+    """(seconds, RMS mm, residual evaluations): scipy least_squares(method="lm", 2-point FD, unbiased, at most 50
+    Jacobians) over the entries `fit` estimated, from identify's frames-only point, on `core.weighted_residuals`
+    (jaxcal's compiled residual, one call per FD column)."""
+    start = np.asarray(jc.identify(robot, data, free=(), sigma_position=sigma).a_full)
+    idx = fit.info["estimated_index"]
+    w = fit.device.weights(sigma, sigma)
+
+    def res(x):
+        a = start.copy()
+        a[idx] = x
+        return core.weighted_residuals(robot, fit.device, a, data.q, data.y, w).reshape(-1)
+
+    out = {}
+    t = median_time(lambda: out.update(sol=scipy.optimize.least_squares(res, start[idx], method="lm",
+                                                                         max_nfev=50 * (len(idx) + 1))), repeat=3)
+    return t, float(np.sqrt(np.mean(out["sol"].fun ** 2)) * sigma * 1e3), out["sol"].nfev
+
+
+def own_residual_rows() -> list[str]:
+    talos = jc.realdata.load("talos")
+    delta = jc.robots.get("delta")
+    q = jc.random_configurations(delta, 125, seed=2)
+    delta_data = jc.simulate(delta, jc.perturb(delta, 1e-3, seed=1), q, device="position", noise=1e-5, seed=3)
+    rows = []
+    for label, robot, data in (("TALOS left arm, 61 real mocap positions", talos.robot, talos.data),
+                               ("Delta (Table 4.6), 125 positions, 0.01 mm noise", delta, delta_data)):
+        fit, first, t = first_and_median(lambda: jc.identify(robot, data, sigma_position=1e-3), repeat=3)
+        t_sp, rms_sp, nfev = scipy_on_own_residual(robot, data, fit, 1e-3)
+        rows.append(f"| identify, {label}, {len(fit.estimated)} parameters, default options | first call {first:.1f} s "
+                    f"| call {t * 1e3:.0f} ms ({fit.iterations} LM steps) | scipy LM + FD on jaxcal's residual, unbiased, "
+                    f"{t_sp * 1e3:.0f} ms ({nfev} evaluations) | {t_sp / t:.1f}x | RMS {fit.rms_after:.4f} vs {rms_sp:.4f} mm |")
+    return rows
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--max-n", type=int, default=100_000, help="largest FK batch (default 1e5)")
@@ -61,7 +104,7 @@ def main(argv=None):
     head = [f"Machine: {machine_line()}.", "",
             "| case | compile | jaxcal (median) | baseline, same process (median) | speed-up | other |",
             "|---|---|---|---|---|---|"]
-    rows = fk_rows(args.max_n) + identify_rows()
+    rows = fk_rows(args.max_n) + identify_rows() + own_residual_rows()
     text = "\n".join(head + rows + ["", f"Whole run {time.perf_counter() - t0:.0f} s.", ""])
     write_text_atomic(args.out, text)
     print(text)
