@@ -313,7 +313,7 @@ def _solve_one(x0, args, limit, model, settings: Settings):
     (`stacked_scaled`), or in the basis args["S"] when args has one (`stacked_basis`). Returns (x, converged,
     steps, final cost, cost history, r, J): the history is `lm.LMResult.history` for the core's LM, empty (shape
     (0,)) for the optimistix solvers; r and J are the stacked residual and its Jacobian in z at x (the core's LM;
-    empty for the others), which `evaluate` reads with limit 0."""
+    empty for the others), which `Problem.jacobian` reads with limit 0."""
     slv = make_solver(settings.solver, settings.rtol, settings.atol)
     reverse = jacobian_mode(model) == "reverse"
     if "S" in args:
