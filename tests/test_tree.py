@@ -15,49 +15,10 @@ from jaxcal.fit.identify import residual_weights, residuals
 from jaxcal.gap.effects import gap_model
 from jaxcal.gap.effects import residuals as gap_residuals
 from jaxcal.gap.fit import covariate_matrix
+from jaxcal.robots import twoarm
 from jaxcal.robots.urdf import load_urdf
 
-
-def _joint(name, parent, child, xyz, rpy="0 0 0", kind="revolute", axis="0 0 1"):
-    limit = "<limit lower='-2.5' upper='2.5' effort='10' velocity='1'/>" if kind == "revolute" else ""
-    ax = f"<axis xyz='{axis}'/>" if kind == "revolute" else ""
-    return (f"<joint name='{name}' type='{kind}'><parent link='{parent}'/><child link='{child}'/>"
-            f"<origin xyz='{xyz}' rpy='{rpy}'/>{ax}{limit}</joint>")
-
-
-def _link(name, mass):
-    """A link, with a 0.2 m-offset centre of mass of `mass` kg when mass > 0."""
-    if not mass:
-        return f"<link name='{name}'/>"
-    return (f"<link name='{name}'><inertial><origin xyz='0 0 -0.12'/><mass value='{mass}'/>"
-            "<inertia ixx='0.01' iyy='0.01' izz='0.01' ixy='0' ixz='0' iyz='0'/></inertial></link>")
-
-
-def _arm(side, sign):
-    """Three revolute joints and a fixed tool link; the fixed mounting joint folds into the first."""
-    j = [_joint(f"{side}_mount", "torso", f"{side}_base", f"0 {sign * 0.2} 0.4", kind="fixed"),
-         _joint(f"{side}_1", f"{side}_base", f"{side}_1_link", "0 0 0.05", axis="0 1 0"),
-         _joint(f"{side}_2", f"{side}_1_link", f"{side}_2_link", "0 0 -0.3", rpy="0.1 0 0", axis="1 0 0"),
-         _joint(f"{side}_3", f"{side}_2_link", f"{side}_3_link", "0.02 0 -0.25", axis="0 1 0"),
-         _joint(f"{side}_tool", f"{side}_3_link", f"{side}_hand", "0 0 -0.1", kind="fixed")]
-    links = [(f"{side}_base", 0), (f"{side}_1_link", 2), (f"{side}_2_link", 3), (f"{side}_3_link", 1.5), (f"{side}_hand", 0)]
-    return j, links
-
-
-def tree_urdf() -> str:
-    """A torso (yaw, then pitch) carrying two 3-joint arms; link masses 1.5-6 kg."""
-    joints = [_joint("torso_yaw", "base_link", "pelvis", "0 0 0.8"),
-              _joint("torso_pitch", "pelvis", "torso", "0 0 0.1", axis="0 1 0")]
-    links = [("base_link", 0), ("pelvis", 0), ("torso", 6)]
-    for side, sign in (("left", 1), ("right", -1)):
-        j, ln = _arm(side, sign)
-        joints += j
-        links += ln
-    body = "".join(_link(n, m) for n, m in links) + "".join(joints)
-    return f"<?xml version='1.0'?><robot name='twoarm'>{body}</robot>"
-
-
-TIPS = ["left_hand", "right_hand"]
+TIPS = list(twoarm.TIPS)
 FRAME = np.array([1.4, -0.9, 0.5, 0.4, -0.7, 2.1])  # tracker 1.7 m away, turned 2.3 rad
 MARKERS = np.array([0.03, 0.01, -0.04, -0.02, 0.05, -0.03])
 
@@ -65,7 +26,7 @@ MARKERS = np.array([0.03, 0.01, -0.04, -0.02, 0.05, -0.03])
 @pytest.fixture(scope="module")
 def urdf_path(tmp_path_factory):
     path = tmp_path_factory.mktemp("tree") / "twoarm.urdf"
-    path.write_text(tree_urdf())
+    path.write_text(twoarm.two_arm_urdf())
     return str(path)
 
 
@@ -90,6 +51,9 @@ def test_each_tip_is_its_chain_and_shared_links_are_one_body(urdf_path, tree):
         one = jc.forward(chain, a_chain, q[:, cols])
         assert np.abs(np.asarray(both.p[:, k]) - np.asarray(one.p)).max() < 1e-15
         assert np.abs(np.asarray(both.R[:, k]) - np.asarray(one.R)).max() < 1e-15
+    builtin = jc.robots.get("twoarm")  # the built-in tree is this file's robot
+    assert builtin.names == tree.names and builtin.tips == tree.tips
+    assert np.abs(np.asarray(jc.forward(builtin, a, q).p) - np.asarray(both.p)).max() < 1e-15
 
 
 def test_a_marker_twice_on_one_link_and_bad_requests(urdf_path):

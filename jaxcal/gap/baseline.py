@@ -22,6 +22,20 @@ def baseline_fits(robot, data, train_masks, *, sigma_position: float, sigma_orie
     sigma_position=, sigma_orientation=, max_steps=)` would give (settings: the solver's; max_steps overrides
     its step limit). Samples whose loops do not close at the
     nominal parameters are left out of every fold (as `identify` leaves them out)."""
+    return [cal for cal, _ in baseline_calibrations(robot, data, train_masks, sigma_position=sigma_position,
+                                                    sigma_orientation=sigma_orientation, max_steps=max_steps,
+                                                    settings=settings)]
+
+
+def final_bias(bias_info: dict) -> float:
+    """The bias mu of the last stage `calibrate_with_default_bias` ran (0 when the estimate was not noise-dominated)."""
+    schedule = bias_info.get("bias_schedule", [0.0])
+    return float(schedule[-1]) if len(schedule) else 0.0
+
+
+def baseline_calibrations(robot, data, train_masks, *, sigma_position: float, sigma_orientation: float,
+                          max_steps: int | None = None, settings: core.Settings | None = None) -> list[tuple]:
+    """`baseline_fits` with each fit's record of identify's bias rule: [(calibration, bias record)]."""
     device = data.device
     closes = core.drop_unclosed(robot, robot.nominal, data.q)
     problem = core.make_problem(robot, device, data.q, data.y,
@@ -31,8 +45,8 @@ def baseline_fits(robot, data, train_masks, *, sigma_position: float, sigma_orie
     settings = settings or core.Settings()
     if max_steps is not None:
         settings = dataclasses.replace(settings, max_steps=max_steps)
-    return [calibrate_with_default_bias(problem.with_weights(problem.w * (np.asarray(m) & closes)[:, None]), settings)[0]
+    return [calibrate_with_default_bias(problem.with_weights(problem.w * (np.asarray(m) & closes)[:, None]), settings)
             for m in train_masks]
 
 
-__all__ = ["baseline_fits"]
+__all__ = ["baseline_calibrations", "baseline_fits", "final_bias"]

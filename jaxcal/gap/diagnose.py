@@ -52,7 +52,7 @@ from jaxcal.fit.data import Dataset
 from jaxcal.fit.sessions import session_labels
 from jaxcal.gap import fit as gf
 from jaxcal.gap import where as wh
-from jaxcal.gap.baseline import baseline_fits
+from jaxcal.gap.baseline import baseline_calibrations, final_bias
 from jaxcal.gap.effect import get_effect, registered_effects
 from jaxcal.gap.model import GapModel, gap_model, input_basis
 
@@ -61,8 +61,10 @@ MAX_EFFECT_COLUMNS = 18  # effect columns the selected model may add (max_effect
 # Refit control (step 3). mu = 1: a departure of one typical size (1 cm, 10 mrad) from the baseline geometry
 # costs as much as one reading at the baseline RMS; well-measured directions (curvature >> 1) are not biased,
 # directions the training fold leaves nearly free are held at the baseline instead of running off.
-# Closed loops get no prior: their base set (pivot tolerance core.BASE_TOL) is the conditioning control, and on the Delta the
-# prior kept the geometry from moving with the effect (backlash refit 0.061 mm held out vs 0.039 mm linearised).
+# Closed loops get no fixed prior: their base set (pivot tolerance core.BASE_TOL) is the conditioning control, and on the
+# Delta PRIOR_MU kept the geometry from moving with the effect (backlash refit 0.061 mm held out vs 0.039 mm linearised).
+# They get the bias of their own baseline instead (`Baseline.bias`, identify's rule, > 0 when noise-dominated): at 0.2 mm
+# noise with the tracker metres away an unbiased refit wandered 0.25-0.35 m along weakly determined directions.
 PRIOR_MU = 1.0
 # Closed loops: the baseline LM stops after this many steps. Beyond ~40 it walked, on the Delta, along weakly
 # determined geometric directions into geometries where held-out samples no longer close (5 of 100 blind cases).
@@ -389,6 +391,7 @@ class Baseline:
     seconds: float
     early_stopped: bool = False  # closed loop: stopped at CLOSED_BASELINE_STEPS by design
     max_steps: int = 200  # the solver's step limit
+    bias: float = 0.0  # the bias mu of the all-data fit's last stage (identify's rule: > 0 when noise-dominated)
 
     @property
     def failed(self) -> list[str]:
@@ -414,8 +417,9 @@ def fit_baselines(robot, data: Dataset, prep: Prepared, settings: core.Settings)
     capped = robot.closure is not None and settings.max_steps > CLOSED_BASELINE_STEPS
     steps = CLOSED_BASELINE_STEPS if capped else settings.max_steps
     train = [prep.fold[:prep.n] != b for b in range(folds)] + [np.ones(prep.n, bool)]
-    cals = baseline_fits(robot, data, train, sigma_position=sigma[0], sigma_orientation=sigma[-1],
-                         settings=dataclasses.replace(settings, max_steps=steps))
+    fits = baseline_calibrations(robot, data, train, sigma_position=sigma[0], sigma_orientation=sigma[-1],
+                                 settings=dataclasses.replace(settings, max_steps=steps))
+    cals = [cal for cal, _ in fits]
     ng = model.n_geometry
     xs = np.tile(model.nominal(), (folds + 1, 1))
     starts = xs.copy()
@@ -430,7 +434,7 @@ def fit_baselines(robot, data: Dataset, prep: Prepared, settings: core.Settings)
         sigma = np.maximum(sigma, 1e-9)
     return Baseline(xs, starts, np.array([c.converged and c.frames_converged for c in cals]),
                     max(c.iterations for c in cals), np.asarray(cals[folds].estimated), sigma, time.perf_counter() - t,
-                    capped, settings.max_steps)
+                    capped, settings.max_steps, final_bias(fits[folds][1]))
 
 
 # ---- stage 3: candidates and their separability ----------------------------------------------------------------------
@@ -649,7 +653,8 @@ def box_limits(model: GapModel, moment_norm, payload_norm) -> np.ndarray:
 
 def refit(prep: Prepared, base: Baseline, lin: Linear, sel: Selection, settings: core.Settings) -> Refit:
     """The calibration core's LM (`core.solve_batch`, every fold and all data in one vmapped call) on the selected
-    columns, each fold regularised toward its baseline (mu = PRIOR_MU; 0 for closed loops) and started from the
+    columns, each fold regularised toward its baseline (mu = PRIOR_MU; closed loops: the baseline's own bias, 0 unless
+    its estimate was noise-dominated) and started from the
     regularised Gauss-Newton step where it lowers the training cost; fits that diverge (`_divergence`) are
     flagged and replaced by their baseline."""
     model, folds = prep.model, prep.folds
@@ -661,7 +666,7 @@ def refit(prep: Prepared, base: Baseline, lin: Linear, sel: Selection, settings:
     cols = sel.columns
     K = gf.active_size(len(base.estimated) + MAX_EFFECT_COLUMNS)
     scale = model.x_scale()
-    mu = PRIOR_MU if model.robot.closure is None else 0.0
+    mu = PRIOR_MU if model.robot.closure is None else base.bias
     prior = prior_weights(cols, mu, model.n_geometry)
     x_try = base.xs.copy()
     for b in range(folds + 1):

@@ -132,6 +132,17 @@ def tiago_arm():
     return _real_robot("tiago")
 
 
+@register("twoarm")
+@functools.cache
+def twoarm():
+    """A synthetic torso with two 3-joint arms read at both hands (a tree: 8 joints, the torso shared;
+    `jaxcal.robots.twoarm`), with URDF inertials for whole-tree gravity loads."""
+    from jaxcal.robots.twoarm import TIPS, two_arm_urdf
+    from jaxcal.robots.urdf import robot_from_urdf
+
+    return robot_from_urdf(two_arm_urdf(), base="base_link", tips=list(TIPS), source="jaxcal.robots.twoarm")
+
+
 # --- Delta and Kiwibot (seed 004 Tables 4.6 and 4.4) ---------------------------------------------
 
 def free_list(name: str) -> list[str]:
