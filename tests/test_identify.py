@@ -184,3 +184,42 @@ def test_few_readings_default_estimates_every_parameter_under_a_chosen_bias():
     assert err(fit) < 0.5 * err(base), (err(fit), err(base))
     assert all(np.isfinite(list(fit.std_errors.values())))
     assert 0.5 < fit.sigma < 2.0, fit.sigma  # effective degrees of freedom under the bias (noise stated right)
+
+
+def test_bias_path_stops_once_the_held_out_score_has_risen_for_patience_stages(monkeypatch):
+    """`fit.bias.heldout_scores` runs the path stage by stage over the folds and stops after PATIENCE (2) rises past
+    the least score: with pooled held-out scores 5, 3, 4, 6 (and 1, 0.5 in the two stages after) it runs four
+    stages on each of the four folds, leaves the last two NaN, and `choose_bias` ends at the second stage. With the
+    patience of the whole path every stage runs and the last wins: the rule assumes a path whose held-out error
+    falls, then rises, which is what fitting the noise along weak directions gives."""
+    from types import SimpleNamespace
+
+    from jaxcal.fit import bias
+
+    curve = dict(zip(bias.BIAS_PATH, (5.0, 3.0, 4.0, 6.0, 1.0, 0.5)))
+    calls = []
+
+    def solve(problem, x, estimated, settings, mu, ref):
+        calls.append(mu)
+        return SimpleNamespace(x=mu)  # the "estimate" is the stage's mu; its held-out score is curve[mu]
+
+    class Problem:
+        used, q = np.ones(8, bool), np.zeros((8, 1))
+
+        def __init__(self, w):
+            self.w = w
+
+        def with_weights(self, w):
+            return Problem(w)
+
+        def residuals(self, mu):  # each of the four folds holds a quarter of the pooled score
+            return np.array([np.sqrt(curve[mu] / bias.BIAS_FOLDS)])
+
+    monkeypatch.setattr(bias.core, "solve", solve)
+    cal = SimpleNamespace(x_frames=None, estimated=np.arange(3))
+    schedule, scores = bias.choose_bias(Problem(np.ones((8, 1))), cal, None)
+    np.testing.assert_allclose(scores[:4], [5.0, 3.0, 4.0, 6.0])
+    assert np.all(np.isnan(scores[4:])) and len(calls) == 4 * bias.BIAS_FOLDS
+    assert schedule == list(bias.BIAS_PATH[:2])
+    full = bias.heldout_scores(Problem(np.ones((8, 1))), cal, None, patience=len(bias.BIAS_PATH))
+    assert bias.least_stage(full) == len(bias.BIAS_PATH) - 1

@@ -11,7 +11,8 @@ is scored on the held-out samples (weighted residual sum of squares), and the st
 pooled held-out score wins (`identify(bias="heldout")`, and `identify`'s default for a noise-dominated closed
 mechanism). On Delta simulation 3's seed-0 draw the fixed ILL_CONDITIONED_BIAS predicted new tool positions
 better (worst 0.95 mm against 1.79 mm), but over six noise draws it reached 8.05 mm where the k-fold choice
-stayed below 1.8 mm (docs/delta.md); the k-fold path costs ~25 solves. Open chains keep ILL_CONDITIONED_BIAS.
+stayed below 1.8 mm (docs/delta.md); the k-fold path costs up to 24 solves, fewer when the held-out score has
+risen for PATIENCE stages in a row (the later stages are not run). Open chains keep ILL_CONDITIONED_BIAS.
 """
 
 from __future__ import annotations
@@ -30,6 +31,8 @@ ILL_CONDITIONED_BIAS = (1e-2, 1e-3, 1e-4, 1e-5)
 # (Delta simulation 2) have a standard error of ~0 and keep mu = 0
 NOISE_DOMINATED = 0.1
 BIAS_FOLDS = 4
+# stages the held-out score may rise past its least before the path stops (`heldout_scores`)
+PATIENCE = 2
 # identify's default for a noise-dominated open chain with few readings: every free parameter (no base-set cut)
 # under mu from strong to weak, stopped by k-fold held-out error. Few = below FEW_READINGS readings (weighted
 # residual components) per estimated parameter. Chosen on docs/defaults.md's table: a TALOS arm (45 base
@@ -67,30 +70,42 @@ def fold_index(n: int, folds: int, seed: int = 0) -> np.ndarray:
 
 
 def heldout_scores(problem: core.Problem, cal: core.Calibration, settings: core.Settings, path=BIAS_PATH,
-                   folds: int = BIAS_FOLDS, seed: int = 0) -> np.ndarray:
-    """Pooled held-out weighted sum of squares after each stage of `path` (one row per stage)."""
+                   folds: int = BIAS_FOLDS, seed: int = 0, patience: int = PATIENCE) -> np.ndarray:
+    """Pooled held-out weighted sum of squares after each stage of `path` (one row per stage), stage by stage over
+    the folds; the path stops once the score has risen for `patience` stages in a row past its least (NaN for the
+    stages not run: along a regularisation path the held-out error falls, then rises as the fit follows the noise,
+    and the stages past the rise are the costly, weakly damped ones)."""
     used = np.flatnonzero(problem.used)
     fold = np.full(len(problem.q), -1)
     fold[used] = fold_index(len(used), folds, seed)
-    scores = np.zeros(len(path))
-    for b in range(folds):
-        held = fold == b
-        train = problem.with_weights(problem.w * (~held)[:, None])
-        x = cal.x_frames
-        for k, mu in enumerate(path):
-            x = core.solve(train, x, cal.estimated, settings, mu, ref=cal.x_frames).x
-            r = train.with_weights(problem.w * held[:, None]).residuals(x)  # the held-out samples, at the fits' shape
+    held = [fold == b for b in range(folds)]
+    trains = [problem.with_weights(problem.w * (~h)[:, None]) for h in held]
+    xs = [cal.x_frames] * folds
+    scores = np.full(len(path), np.nan)
+    for k, mu in enumerate(path):
+        scores[k] = 0.0
+        for b in range(folds):
+            xs[b] = core.solve(trains[b], xs[b], cal.estimated, settings, mu, ref=cal.x_frames).x
+            r = trains[b].with_weights(problem.w * held[b][:, None]).residuals(xs[b])  # held-out samples, the fits' shape
             scores[k] += float(np.sum(np.asarray(r) ** 2))
+        if k - least_stage(scores[:k + 1]) >= patience:
+            break
     return scores
+
+
+def least_stage(scores) -> int:
+    """Index of the least finite score (0 when none is finite; NaN: a stage not run)."""
+    scores = np.asarray(scores, float)
+    return int(np.argmin(np.where(np.isfinite(scores), scores, np.inf)))
 
 
 def choose_bias(problem: core.Problem, cal: core.Calibration, settings: core.Settings, path=BIAS_PATH,
                 folds: int = BIAS_FOLDS, seed: int = 0) -> tuple[list[float], np.ndarray]:
     """(schedule, scores): the prefix of `path` ending at the stage of least held-out error, and the scores."""
     scores = heldout_scores(problem, cal, settings, path, folds, seed)
-    k = int(np.argmin(np.where(np.isfinite(scores), scores, np.inf)))
+    k = least_stage(scores)
     return [float(m) for m in path[:k + 1]], scores
 
 
-__all__ = ["BIAS_FOLDS", "BIAS_PATH", "FEW_READINGS", "ILL_CONDITIONED_BIAS", "NOISE_DOMINATED", "PRIOR_PATH", "choose_bias",
-           "few_readings", "fold_index", "heldout_scores", "weakest_standard_error"]
+__all__ = ["BIAS_FOLDS", "BIAS_PATH", "FEW_READINGS", "ILL_CONDITIONED_BIAS", "NOISE_DOMINATED", "PATIENCE", "PRIOR_PATH",
+           "choose_bias", "few_readings", "fold_index", "heldout_scores", "least_stage", "weakest_standard_error"]

@@ -282,12 +282,12 @@ def calibrate_with_default_bias(problem: core.Problem, settings: core.Settings, 
             if every_free:  # every free parameter under the bias, where it stops chosen by k-fold (`fit.bias`)
                 cal = dataclasses.replace(cal, estimated=np.flatnonzero(problem.free))
                 schedule, scores = choose_bias(problem, cal, settings, path=PRIOR_PATH)
-                bias_info["bias_heldout"] = scores.tolist()
+                bias_info["bias_heldout"] = scores.tolist()  # NaN: a stage not run
             elif bias is None and problem.robot.closure is None:
                 schedule = list(ILL_CONDITIONED_BIAS)
             else:  # bias="heldout", and a closed mechanism by default: the stop chosen by k-fold held-out error
                 schedule, scores = choose_bias(problem, cal, settings)
-                bias_info["bias_heldout"] = scores.tolist()
+                bias_info["bias_heldout"] = scores.tolist()  # NaN: a stage not run
             bias_info.update(bias_schedule=schedule, bias_every_free=every_free)
             cal = core.calibrate(problem, settings, base=base and not every_free, bias=schedule, multistart=multistart,
                                  seed=seed, base_tol=base_tol, started=cal, progress=progress)
