@@ -8,7 +8,9 @@
    device, a noise level, 30-300 samples, covariates, and a hidden truth: no effect, one library
    effect at a random separable joint with magnitude 1x-10x the noise RMS, or a decoy outside the
    library (third-harmonic joint error, a local bump over the workspace, a quadratic cross-joint
-   error; right answer "unexplained"). Data go to cases/NNN.npz; labels to labels.json, written apart.
+   error; right answer "unexplained"). Serial effects are then shrunk, where needed, so that no parameter leaves
+   half of the diagnosis' sane box (`physical`: a gravity sag of tenths of a radian is no robot); the label's
+   magnitude is the size after that. Data go to cases/NNN.npz; labels to labels.json, written apart.
    Delta (closed loop, position device, actuator settings reaching a 400 mm cube): its Table 4.6
    geometry absorbs the smooth actuator-space effects almost entirely (see `visible_fraction`), so
    effects are drawn among those whose displacement keeps >= VISIBLE_MIN of its size after the
@@ -36,9 +38,9 @@ import numpy as np  # noqa: E402
 
 import jaxcal as jc  # noqa: E402
 from jaxcal import compiled  # noqa: E402
-from jaxcal.gap.diagnose import shrink_fraction  # noqa: E402
+from jaxcal.gap.diagnose import box_limits, shrink_fraction  # noqa: E402
 from jaxcal.gap.effects import GLOBAL_EFFECTS, JOINT_EFFECTS, NEEDS, gap_model  # noqa: E402
-from jaxcal.gap.fit import covariate_matrix, jacobians, loads_and_tips, padded_size  # noqa: E402
+from jaxcal.gap.fit import covariate_matrix, jacobians, loads_and_tips, moment_norms, padded_size  # noqa: E402
 from jaxcal.gap.simulate import add_noise, effect_vector, readings  # noqa: E402
 
 ROBOTS = ("mrr1", "stanford")
@@ -48,6 +50,7 @@ UNITS_MISTAKES = ("mm_as_m_csv", "mm_as_m_array", "deg_as_rad_csv")  # how a use
 DECOYS = ("harmonic3", "bump", "quadratic")
 MAX_MAPPED_REGIONS = 30_000  # memory mappings past which compiled code is dropped (tests/conftest.py does the same)
 VISIBLE_MIN = 0.2  # closed loops: share of an effect's displacement left after the linearised geometry fit
+PHYSICAL_SHARE = 0.5  # serial draws: every effect parameter within this share of the diagnosis' sane box (`physical`)
 
 
 def configurations(robot, n, seed):
@@ -200,6 +203,18 @@ def _scaled_effect(robot, model, x0, q, cov, eff, rng, target, separable):
     return joint, {kk: float(v * k) for kk, v in unit.items()}
 
 
+def physical(model, x0, q, params) -> float:
+    """Factor (<= 1) that brings every parameter of params within PHYSICAL_SHARE of the diagnosis' sane box
+    (`gap.diagnose.box_limits`: 0.1 rad of joint or gravity deflection, 0.1 m, 10 % of a gain). Sized to a
+    large noise, a gravity effect at a joint whose load barely changes over the poses needs a sag of tenths of a
+    radian (seed 6: 0.16-0.36 rad at the Stanford arm's j1); no robot sags like that, so the draw is shrunk."""
+    M, P = (np.asarray(a) for a in moment_norms(x0, q, model=model))
+    lim = box_limits(model, M, P)
+    index = {n: i for i, n in enumerate(model.effect_names)}
+    over = max((abs(v) / (PHYSICAL_SHARE * lim[model.n_geometry + index[k]]) for k, v in params.items()), default=0.0)
+    return min(1.0, 1.0 / over) if over > 0 else 1.0
+
+
 def _device(robot, kind: str):
     """The device of a case: kind "multi_position" reads one marker at each tip of a tree."""
     return jc.make_device(kind, points=robot.n_tips) if kind == "multi_position" else jc.make_device(kind)
@@ -281,8 +296,10 @@ def generate(folder, n_cases, seed, robots=ROBOTS, wide: bool = False):
                 cov.setdefault("direction", rng.choice([-1.0, 1.0], (n, robot.n_inputs)))
             label["covariates"] = sorted(cov)
             joint, params = _scaled_effect(robot, model, x0, q, cov, eff, rng, target, separable_joints(robot, model, eff))
+            k = physical(model, x0, q, params)
+            params, magnitude = {kk: v * k for kk, v in params.items()}, magnitude * k
             label.update(effect=eff, joints=[] if joint is None else [robot.joint_names[joint]], magnitude=magnitude,
-                         parameters=params)
+                         parameters=params, physical_factor=k)
             if wide and rng.random() < 0.2:  # a second effect at once, of another kind, sized alike
                 other = str(rng.choice([e for e in effects if e != eff]))
                 if NEEDS.get(other) == "direction":
@@ -292,6 +309,8 @@ def generate(folder, n_cases, seed, robots=ROBOTS, wide: bool = False):
                 label["covariates"] = sorted(cov)
                 joint2, params2 = _scaled_effect(robot, model, x0, q, cov, other, rng, target,
                                                  separable_joints(robot, model, other))
+                k2 = physical(model, x0, q, params2)
+                params2 = {kk: v * k2 for kk, v in params2.items()}
                 params = {kk: params.get(kk, 0.0) + params2.get(kk, 0.0) for kk in {**params, **params2}}
                 label.update(also=other, also_joints=[] if joint2 is None else [robot.joint_names[joint2]],
                              parameters=params)

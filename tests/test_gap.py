@@ -342,6 +342,25 @@ def test_unconverged_baseline_names_no_effect():
     assert d.timings["lm_steps"]["baseline_failed"] and not d.timings["lm_steps"]["baseline_converged"]
 
 
+def test_an_effect_that_closes_none_of_the_gap_is_not_named():
+    """verdict_of names a selected effect only when it closed part of the held-out gap (shrink > 0): with the
+    baseline's held-out RMS at the noise floor (seed 6 of the wide blind generator, case 0186: link bending
+    selected on a no-effect case, held-out 0.4233 -> 0.4232 mm against a floor of 0.4260 mm) the verdict is
+    "none"; structure left is still "unexplained", and a failed baseline still names nothing."""
+    from jaxcal.gap.diagnose import NOT_CONVERGED, shrink_fraction, verdict_of
+
+    class Picked:
+        effect, joints = "link_bending", (1,)
+
+    names = ("j1", "j2", "j3")
+    no_gap = shrink_fraction(0.42325620, 0.42324677, 0.42597265)
+    assert no_gap == 0.0
+    assert verdict_of(0.5, 0.01, [Picked()], names, shrink=no_gap) == ("none", ())
+    assert verdict_of(0.5, 0.01, [Picked()], names, shrink=0.8) == ("link_bending", ("j2",))
+    assert verdict_of(1e-4, 0.01, [Picked()], names, shrink=0.8) == ("unexplained", ())
+    assert verdict_of(0.5, 0.01, [Picked()], names, baseline_failed=["fold 0"], shrink=0.8) == (NOT_CONVERGED, ())
+
+
 # ---- issue 17 item 2: the instrument's noise figure ---------------------------------------------------------------
 def _rough_case(times_noise: float, seed: int = 21):
     """MRR-1, position readings, no repeated poses: a structured error of `times_noise` x the 3-D noise RMS that

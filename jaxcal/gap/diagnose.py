@@ -25,10 +25,11 @@ Method (DESIGN "The sim-to-real gap diagnosis"; issue 7):
    floor (repeated poses, else the residual of the fit with its degrees of freedom) and
    shrink = (before^2 - after^2) / (before^2 - floor^2), the fraction of the gap closed.
 4. Verdict: "baseline did not converge" when a baseline fit stopped unconverged at the step limit
-   (no effect is named); "none" when no candidate is significant and the held-out residual has no
-   structure; "unexplained" when structure remains (where.decompose, Bonferroni over features; with
-   the instrument's noise figure sigma_position also the chi-square test of the fit residual against
-   it) that the selected effects do not capture; else the first selected effect.
+   (no effect is named); "none" when no candidate is significant, or the selected ones close none of the
+   held-out gap (shrink <= 0), and the held-out residual has no structure; "unexplained" when structure
+   remains (where.decompose, Bonferroni over features; with the instrument's noise figure sigma_position
+   also the chi-square test of the fit residual against it) that the selected effects do not capture;
+   else the first selected effect.
 
 Stages, one function each (`diagnose` runs them in turn): `prepare` (padding, folds, covariates),
 `fit_baselines` (1), `linearise` and `separable_variants` (candidates), `select` (2: ranking and
@@ -825,15 +826,18 @@ def left_structure_p(feature_p: float, noise_p: float | None) -> float:
     return float(min(1.0, 2.0 * min(feature_p, noise_p)))
 
 
-def verdict_of(structure_p: float, alpha: float, selected, joint_names, baseline_failed=()) -> tuple[str, tuple[str, ...]]:
+def verdict_of(structure_p: float, alpha: float, selected, joint_names, baseline_failed=(),
+               shrink: float = 1.0) -> tuple[str, tuple[str, ...]]:
     """NOT_CONVERGED when a baseline fit stopped unconverged (`Baseline.failed`: geometry left unfitted reads as
     an effect or as structure, so no effect is named); "unexplained" when structure is left (structure_p < alpha);
-    "none" when nothing was selected; else the first selected effect and the joints it was selected at."""
+    "none" when nothing was selected, or when the selected effects closed none of the held-out gap (shrink <= 0:
+    the baseline's held-out RMS is already at the noise floor, or the refit did not lower it, so the data do not
+    show the effect); else the first selected effect and the joints it was selected at."""
     if baseline_failed:
         return NOT_CONVERGED, ()
     if structure_p < alpha:
         return "unexplained", ()
-    if not selected:
+    if not selected or not shrink > 0:
         return "none", ()
     verdict = selected[0].effect
     return verdict, tuple(joint_names[j] for s in selected if s.effect == verdict for j in s.joints)
@@ -869,7 +873,7 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
     ho = heldout(prep, base, sel, fit, data, sigma_position, sigma_orientation)
     where = locate(prep, base, lin, ho, data, seed)
     structure_p = left_structure_p(where.structure_p, ho.noise_p)
-    verdict, joints = verdict_of(structure_p, alpha, sel.selected, robot.joint_names, base.failed)
+    verdict, joints = verdict_of(structure_p, alpha, sel.selected, robot.joint_names, base.failed, ho.shrink)
     model, jn = prep.model, robot.joint_names
     params = {model.names[i]: float(fit.xs[folds][i])
               for s in ([] if fit.all_data_diverged else sel.selected) for i in s.cols}
