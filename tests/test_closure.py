@@ -152,6 +152,7 @@ def test_bad_descriptions():
         jc.forward(rb, rb.nominal, jnp.array([1.0]))
 
 
+@pytest.mark.slow  # ~45 s (CI time); the closure's jacfwd against central differences runs fast in test_against_finite_differences
 def test_full_closure_mcpc_planar_fourbar(fb):
     """The same four-bar as an MCPC tree closed at a rotary joint ("full": position + Euler parameters).
 

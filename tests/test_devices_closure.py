@@ -109,6 +109,7 @@ def _delta_study(device, noise=None, free=None, n_grid=5, seed=0, **options):
 RODS = ["j7.d1", "j17.d1", "j20.d1", "j23.d1", "j26.d1", "j29.d1"]
 
 
+@pytest.mark.slow  # ~33 s (CI time); a Delta calibration runs fast in docs/tutorials/delta-theodolite.md
 def test_delta_finds_the_longer_arm_from_pose_data_small():
     """Fast version of Delta simulation 1: 27 full-pose readings, the six rod lengths free.
     The 20 mm error of rod 26 is found to 1e-9 m and the residual vanishes."""

@@ -22,6 +22,9 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
 import montecarlo_fourbar3d as study  # noqa: E402
 
 N_POSES, RUNS, SD = 16, 64, 1e-5
+# The whole study runs with the slow tests (~60 s of fixtures, CI time); Monte Carlo runs fast in test_uncertainty.py
+# and, on every device, in test_devices.py and test_grid.py.
+pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")

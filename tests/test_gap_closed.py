@@ -84,6 +84,7 @@ def test_platform_load_matches_the_nominal_direct_solution(delta):
     assert np.all(np.abs(fd) > 0.05)  # a load worth modelling on every actuator
 
 
+@pytest.mark.slow  # ~33 s (CI time); the thermal effect's gradient through the closure is checked fast below
 def test_thermal_scaling_is_a_similarity_of_the_closed_mechanism(delta, model):
     """Scaling every length of the Delta by s and closing the loop again puts the tool at s p (angles
     unchanged): the thermal effect's p0 + (1 + kappa tau)(p - p0) is exact through the closure."""
