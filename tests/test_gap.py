@@ -359,6 +359,9 @@ def test_an_effect_that_closes_none_of_the_gap_is_not_named():
     assert verdict_of(0.5, 0.01, [Picked()], names, shrink=0.8) == ("link_bending", ("j2",))
     assert verdict_of(1e-4, 0.01, [Picked()], names, shrink=0.8) == ("unexplained", ())
     assert verdict_of(0.5, 0.01, [Picked()], names, baseline_failed=["fold 0"], shrink=0.8) == (NOT_CONVERGED, ())
+    d = jc.gap.Diagnosis("mrr1", "position", "none", (), [], no_gap, {"axis_rms": {}, "features": []}, 0.42325620,
+                         0.42324677, 0.42597265, "instrument noise figure", [("link_bending", ("j2",))], {}, 1.0, {}, 127, 5, {})
+    assert "not named: the selected effects close none of the held-out gap" in d.report(), d.report()
 
 
 # ---- issue 17 item 2: the instrument's noise figure ---------------------------------------------------------------

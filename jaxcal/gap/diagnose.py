@@ -156,6 +156,8 @@ class Diagnosis:
                      f" remainder {self.heldout_rms_after / max(self.noise_floor, 1e-300):.2f} x floor")
         if self.selected:
             lines.append("selected (greedy): " + "; ".join(f"{e}{'@' + ','.join(js) if js else ''}" for e, js in self.selected))
+            if self.verdict == "none":
+                lines.append("not named: the selected effects close none of the held-out gap above the noise floor")
         noise = ("" if self.noise_p is None
                  else f" (with the noise-figure test: fit residual vs instrument noise p = {self.noise_p:.3g})")
         lines.append(f"structure left after the selected model: p = {self.structure_p:.3g}{noise}")
