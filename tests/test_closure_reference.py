@@ -23,6 +23,10 @@ from jaxcal.closure import CLOSED, UNCLOSED, closure_residual, tree_frames
 from jaxcal.closure import delta as dl
 
 REF_STEPS = 20
+# LM iterations per homotopy step. 12 left the reference short of the branch on 2 of 2,200 settings at 1 cm errors
+# (seed 12: residual not closed, so counted "off branch" although the fast path's answer was right); with 30 the
+# reference reaches the fast path's tool on both to 1e-12 mm (400 homotopy steps give the same).
+BRANCH_ITERS = 30
 CLOSED_TOL = 1e-10
 
 
@@ -69,7 +73,7 @@ def reference(rb, a, q, starts=6, seed=0):
     th = np.broadcast_to(np.asarray(rb.closure.start, float), (len(qj), len(rb.closure.start))).copy()
     for k in range(REF_STEPS + 1):
         t = k / REF_STEPS
-        th, norm = _lm(res, jac, jnp.asarray(a_ref + t * (a - a_ref)), jnp.asarray(home + t * (qj - home)), th, iters=12)
+        th, norm = _lm(res, jac, jnp.asarray(a_ref + t * (a - a_ref)), jnp.asarray(home + t * (qj - home)), th, iters=BRANCH_ITERS)
     branch_ok = norm <= CLOSED_TOL
     branch_tool = np.asarray(tool(jnp.asarray(a), jnp.asarray(qj), jnp.asarray(th)))
     rng = np.random.default_rng(seed)
@@ -90,8 +94,15 @@ def _settings(n, seed):
 
 
 def compare(rb, scale, n, seed):
-    """Counts: (settings, closable by the reference, flagged unclosed though closable, reported closed
-    off the reference branch, closed on the branch by the reference but not by us)."""
+    """Counts: (settings, closable by the reference, flagged unclosed though closable on the reference branch,
+    flagged unclosed though closable only away from the branch (another assembly mode that a random start of the
+    reference finds), reported closed off the reference branch, closed on the branch by the reference but not by us).
+
+    "flagged_other_mode" is counted apart: at 1 cm errors, 2 of 2,200 settings of seed 12 (q2 near its lower limit)
+    close in the whole tree only with rod 1's ball joint turned ~2.5 rad from the nominal assembly (found from one of
+    12 random starts); the reduced 5 x 5 system has no root within 0.3 rad starts of the nominal one (least |F|
+    2.3e-3 and 5.5e-3 m), and the branch continued from the nominal robot ends before t = 1. The fast path calls
+    them UNCLOSED (left out of fits, like OTHER_MODE); it does not search for far assembly modes."""
     a = jc.perturb(rb, scale, seed=seed)
     q = _settings(n, seed)
     ours = dl.solve(rb, a, q)
@@ -99,7 +110,9 @@ def compare(rb, scale, n, seed):
     tool = np.asarray(jc.forward(rb, a, q).p)
     branch_tool, branch_ok, closable = reference(rb, a, q, seed=seed)
     off_branch = (status == CLOSED) & (~branch_ok | (np.linalg.norm(tool - branch_tool, axis=1) > 1e-6))
-    return {"settings": len(q), "closable": int(closable.sum()), "flagged_closable": int(np.sum(closable & (status == UNCLOSED))),
+    flagged = closable & (status == UNCLOSED)
+    return {"settings": len(q), "closable": int(closable.sum()), "flagged_closable": int(np.sum(flagged & branch_ok)),
+            "flagged_other_mode": int(np.sum(flagged & ~branch_ok)),
             "off_branch": int(off_branch.sum()), "missed_branch": int(np.sum(branch_ok & (status != CLOSED)))}
 
 
@@ -109,6 +122,7 @@ def test_delta_closure_agrees_with_slow_reference(rb, scale):
     c = compare(rb, scale, 520, seed=1)
     assert c["settings"] > 400 and c["closable"] > 0.9 * c["settings"], c
     assert c["flagged_closable"] == 0 and c["off_branch"] == 0 and c["missed_branch"] == 0, c
+    assert c["flagged_other_mode"] <= 1e-3 * c["settings"], c
 
 
 @pytest.mark.slow
@@ -121,3 +135,4 @@ def test_delta_closure_agrees_with_slow_reference_10000(rb, scale):
         total = {k: total.get(k, 0) + v for k, v in c.items()}
     assert total["settings"] >= 10_000, total
     assert total["flagged_closable"] == 0 and total["off_branch"] == 0 and total["missed_branch"] == 0, total
+    assert total["flagged_other_mode"] <= 1e-3 * total["settings"], total  # measured: 5 of 11,000 at 1 cm
