@@ -59,7 +59,7 @@ def test_effect_gradients_match_central_differences(robot_name, device):
     x = np.asarray(model.nominal()).copy()
     x[:robot.n_params] = np.asarray(jc.perturb(robot, 1e-2, seed=1))
     x[model.n_geometry:] = 1e-2 * rng.standard_normal(len(model.effect_names))
-    y = jax.vmap(lambda qi, ci: read(model, jnp.asarray(x), qi, ci))(q, C)
+    y = jax.jit(jax.vmap(lambda qi, ci: read(model, jnp.asarray(x), qi, ci)))(q, C)
     m = 3 if device == "position" else 6
     f = jax.jit(lambda v: residuals(model, v, q, y, C, jnp.ones(m)).reshape(-1))
     J = np.asarray(jax.jacfwd(f)(jnp.asarray(x)))
@@ -426,7 +426,7 @@ def test_core_jacobian_of_the_gap_model_is_jacfwd():
     x[:robot.n_params] = np.asarray(jc.perturb(robot, 1e-2, seed=1))
     x[model.n_geometry:] = 1e-2 * np.random.default_rng(0).standard_normal(len(model.effect_names))
     x = jnp.asarray(x)
-    y = jax.vmap(lambda qi, ci: read(model, x, qi, ci))(q, C)
+    y = jax.jit(jax.vmap(lambda qi, ci: read(model, x, qi, ci)))(q, C)
     y = y + 1e-4 * jnp.cos(jnp.arange(y.size).reshape(y.shape))
     w = jnp.ones((n, 6))
     _, J = jax.jit(core.data_residual_and_jacobian, static_argnums=0)(residual_model, x, q, y, C, w)

@@ -130,9 +130,9 @@ def test_core_jacobian_is_jacfwd(robot_name, device_kind, monkeypatch):
     y = y + 1e-4 * jnp.sin(jnp.arange(y.size).reshape(y.shape))  # a non-zero residual
     w = jnp.asarray(core.per_sample(residual_weights(dev, 1e-3, 1e-3), 10))
     cov = jnp.zeros((10, 0))
-    J_fwd = jax.jacfwd(lambda a: model.residuals(a, q, y, cov, w).reshape(-1))(x)
+    J_fwd = jax.jit(jax.jacfwd(lambda a: model.residuals(a, q, y, cov, w).reshape(-1)))(x)  # compiled: op by op was slower
     for chunk in (core.JACOBIAN_CHUNK, 4):
-        monkeypatch.setattr(core, "JACOBIAN_CHUNK", chunk)
-        r, J = core.data_residual_and_jacobian(model, x, q, y, cov, w)
+        monkeypatch.setattr(core, "JACOBIAN_CHUNK", chunk)  # read when traced: a new function per chunk size
+        r, J = jax.jit(lambda a: core.data_residual_and_jacobian(model, a, q, y, cov, w))(x)
         np.testing.assert_allclose(r, model.residuals(x, q, y, cov, w).reshape(-1), rtol=0, atol=1e-11)  # readings ~1e3 weighted
         assert rel_err(J, J_fwd) < 1e-12, (chunk, rel_err(J, J_fwd))  # measured ~1e-16
