@@ -94,6 +94,7 @@ def test_fit_carries_covariance_and_standard_errors():
         assert abs(float(fit.a[i] - a[i])) < 5 * se[name]
 
 
+@pytest.mark.slow  # ~35 s (a fresh process compiles); sharding of a batch of LM loops runs fast in test_scale_out.py
 def test_sharded_monte_carlo_equals_unsharded():
     """Two host CPU devices: the same runs sharded over both or on one give identical estimates."""
     code = textwrap.dedent("""
