@@ -44,7 +44,6 @@ def _jacobians(rb, a, q, theta_free):
 
 
 @functools.partial(jax.jit, static_argnums=0)
-@functools.partial(jax.jit, static_argnums=0)  # compiled: central differences call it 78 times (op by op: ~0.3 s each)
 def _nacelle_frames(rb, a, q, theta_free):
     """Nacelle frame 10 of the open tree at the closed free joints, per sample."""
     f = jax.vmap(lambda qi, ti: core.tree_frames(rb, a, qi, ti))(q, theta_free)
