@@ -239,13 +239,15 @@ def data_residual_and_jacobian(model, a_full, q, y, cov, w):
 
 
 def scaled_residual_and_jacobian(model, z, args):
-    """(r, J) of `stacked_scaled` at z: the data rows by `data_residual_and_jacobian` (chain rule through
-    x = a_ref + x_scale z, entries not estimated held at a_ref), the prior rows by forward mode (elementwise)."""
+    """(r, J) of `stacked_scaled` at z, J with every column: the data rows by `data_residual_and_jacobian` (chain
+    rule through x = a_ref + x_scale z; the entries not estimated are held at a_ref, and their columns are the data
+    rows' derivative there, which the solver leaves out of its steps and returns: `lm.least_squares`'s free), the
+    prior rows by forward mode (elementwise)."""
     m, a_ref, s = args["mask"], args["a_ref"], args["x_scale"]
     x = a_ref + s * z
     r_d, J_a = data_residual_and_jacobian(model, jnp.where(m > 0, x, a_ref), args["q"], args["y"], args["cov"], args["w"])
     r_p, J_p = residual_and_jacobian(lambda u, a: prior_rows(a["a_ref"] + a["x_scale"] * u, a), z, args)
-    return jnp.concatenate([r_d, r_p]), jnp.concatenate([J_a * jnp.where(m > 0, s, 0.0), J_p])
+    return jnp.concatenate([r_d, r_p]), jnp.concatenate([J_a * s, J_p])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -313,7 +315,8 @@ def _solve_one(x0, args, limit, model, settings: Settings):
     (`stacked_scaled`), or in the basis args["S"] when args has one (`stacked_basis`). Returns (x, converged,
     steps, final cost, cost history, r, J): the history is `lm.LMResult.history` for the core's LM, empty (shape
     (0,)) for the optimistix solvers; r and J are the stacked residual and its Jacobian in z at x (the core's LM;
-    empty for the others), which `Problem.jacobian` reads with limit 0."""
+    empty for the others; out of a basis, every column, the entries not estimated too), which `Problem.jacobian`
+    reads with limit 0 and `solve` after a fit."""
     slv = make_solver(settings.solver, settings.rtol, settings.atol)
     reverse = jacobian_mode(model) == "reverse"
     if "S" in args:
@@ -323,11 +326,11 @@ def _solve_one(x0, args, limit, model, settings: Settings):
         to_x = lambda z: basis_point(z, args)  # noqa: E731
     else:
         fn = functools.partial(stacked_scaled, model)
-        jac = functools.partial(scaled_residual_and_jacobian, model) if reverse else None
+        jac = functools.partial(scaled_residual_and_jacobian, model)
         z0 = (x0 - args["a_ref"]) / args["x_scale"]
         to_x = lambda z: args["a_ref"] + args["x_scale"] * z  # noqa: E731
     if isinstance(slv, LevenbergMarquardt):
-        res = slv(fn, z0, args, settings.max_steps, jac, limit)
+        res = slv(fn, z0, args, settings.max_steps, jac, limit, None if "S" in args else args["mask"])
         return to_x(res.z), res.converged, res.steps, res.cost, res.history, res.r, res.J
     sol = optx.least_squares(fn, slv, z0, args, max_steps=settings.max_steps, throw=False)
     empty = jnp.zeros(0, z0.dtype)
@@ -664,7 +667,8 @@ def _registration(device: Device, P, Y) -> np.ndarray | None:
 class Solution:
     """One solver run: the full vector, whether the solver met its tolerance, its steps and final cost; history:
     the cost at the start and after each step (the core's LM; empty for the optimistix solvers); estimated: the
-    indices it moved."""
+    indices it moved; J: the data rows' Jacobian at x, every column (`Problem.jacobian`), read off the core's LM
+    (None for the other solvers and for a batch)."""
 
     x: np.ndarray
     converged: bool
@@ -673,6 +677,20 @@ class Solution:
     compile_s: float
     history: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     estimated: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, int))
+    J: np.ndarray | None = None
+
+
+def solver_jacobian(problem: Problem, J_z, args) -> np.ndarray | None:
+    """`Problem.jacobian` at a solve's end from the Jacobian that the core's LM returns there (in z, with the
+    data weights that `Problem.args` scaled): the data rows, each column divided by its x_scale, times the
+    weights' scale w / args["w"] (one number). None when the solver returned none (the optimistix solvers)."""
+    J_z = np.asarray(J_z)
+    if not J_z.size:
+        return None
+    w, w_solver = problem.w, np.asarray(args["w"])
+    used = w != 0
+    weight_scale = float(np.median(w[used] / w_solver[used])) if used.any() else 1.0
+    return J_z[:w.size] / np.asarray(args["x_scale"]) * weight_scale
 
 
 def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, ref=None) -> Solution:
@@ -681,10 +699,11 @@ def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, 
     args = problem.args(estimated, mu, ref)
     x0 = np.asarray(x0, np.float64)
     exe, dt = compiled_model_solver(x0, args, problem.model, settings)
-    x, ok, steps, cost, history, _, _ = exe(x0, args, step_limit(settings.max_steps))
+    x, ok, steps, cost, history, _, J_z = exe(x0, args, step_limit(settings.max_steps))
     x = np.where(np.asarray(args["mask"]) > 0, np.asarray(x), np.asarray(ref))
     history = np.asarray(history)
-    return Solution(x, bool(ok), int(steps), float(cost), dt, history[np.isfinite(history)], np.asarray(estimated, int))
+    return Solution(x, bool(ok), int(steps), float(cost), dt, history[np.isfinite(history)], np.asarray(estimated, int),
+                    solver_jacobian(problem, J_z, args))
 
 
 def solve_batch(problem: Problem, x0s, args, settings: Settings, batched) -> tuple:
@@ -847,7 +866,7 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
         P = len(problem.names)  # the solver's program, compiled first: `Problem.jacobian` runs it too
         _, compile_s = evaluator(problem, problem.solver_arrays(problem.a_ref, np.ones(P), problem.w, 0.0, np.ones(P)), settings)
         x_frames, frames_sol, registered = start(problem, settings)
-        J0 = problem.jacobian(x_frames)
+        J0 = problem.jacobian(x_frames) if frames_sol is None or frames_sol.J is None else frames_sol.J
         frames_ok = True if frames_sol is None else frames_sol.converged
         compile_s += 0.0 if frames_sol is None else frames_sol.compile_s
         frames_fitted = np.zeros(0, int) if frames_sol is None else frames_sol.estimated
@@ -872,7 +891,7 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
         x, compile_s = sol.x, compile_s + sol.compile_s
         iterations += sol.steps
         converged = converged and sol.converged
-    J = problem.jacobian(x)
+    J = problem.jacobian(x) if sol.J is None else sol.J  # the last stage's solver returned it at x
     polish_record = {"tried": False}
     if base and final_polish:
         say("final all-parameter stage (tried when it would lower the cost beyond noise)")
@@ -881,7 +900,7 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
             x, compile_s, converged = polished.x, compile_s + polished.compile_s, True
             iterations += polished.steps
             histories.append(polished.history)
-            J = problem.jacobian(x)
+            J = problem.jacobian(x) if polished.J is None else polished.J
     run_s = time.perf_counter() - t0 - compile_s
     history = np.concatenate(histories) if histories and all(h.size for h in histories) else np.zeros(0)
     return Calibration(problem, x, x_frames, est, undetermined, no_effect, regrouped, J, converged, frames_ok, iterations,

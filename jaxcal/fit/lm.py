@@ -145,18 +145,21 @@ def step(fn: Callable, s: LMState, args, rtol: float, atol: float, jac: Callable
     return advance(jac or functools.partial(residual_and_jacobian, fn), s, args, rtol, atol, jnp.asarray(False))
 
 
-def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first) -> LMState:
+def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first, free=None) -> LMState:
     """`step` with the residual-and-Jacobian function rj; when `first` is true the step is 0 and
     the point is taken as it is (the state then holds r and J at z and lam = `initial_damping`, as `init` gives, and
     counts no step). `least_squares` starts its loop with such a step, so rj appears once in the compiled loop, not
-    also before it: the Jacobian is most of what XLA compiles."""
-    U, v = damped_factor(s.J, s.r, s.lam)
-    a = jnp.where(~first & (s.steps >= ACCEL_AFTER), secant_acceleration(s.J, U, v, s.last, s.bend), 0.0)
+    also before it: the Jacobian is most of what XLA compiles. free: 0/1 per unknown, the columns of J the step
+    uses (None: all); the state keeps every column."""
+    masked = (lambda J: J) if free is None else (lambda J: J * free)  # noqa: E731
+    J = masked(s.J)
+    U, v = damped_factor(J, s.r, s.lam)
+    a = jnp.where(~first & (s.steps >= ACCEL_AFTER), secant_acceleration(J, U, v, s.last, s.bend), 0.0)
     delta = jnp.where(first, 0.0, v + 0.5 * a)
     z_new = s.z + delta
     r_new, J_new = rj(z_new, args)
     cost, cost_new = s.r @ s.r, r_new @ r_new
-    predicted = cost - jnp.sum((s.r + s.J @ v) ** 2)
+    predicted = cost - jnp.sum((s.r + J @ v) ** 2)
     actual = cost - cost_new
     small = (jnp.all(jnp.abs(delta) <= atol + rtol * jnp.abs(z_new))
              & jnp.all(jnp.abs(r_new - s.r) <= atol + rtol * jnp.abs(r_new)))
@@ -168,17 +171,20 @@ def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first) -> 
     keep = lambda new, old: jnp.where(accepted, new, old)  # noqa: E731
     lam = jnp.where(accepted, s.lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), s.lam * s.nu)
     moved = accepted & ~first
-    return LMState(keep(z_new, s.z), keep(r_new, s.r), keep(J_new, s.J), jnp.where(first, initial_damping(J_new), lam),
+    return LMState(keep(z_new, s.z), keep(r_new, s.r), keep(J_new, s.J), jnp.where(first, initial_damping(masked(J_new)), lam),
                    jnp.where(accepted, 2.0, 2.0 * s.nu), s.steps + jnp.where(first, 0, 1), ~first & accepted & small,
-                   jnp.where(moved, delta, s.last), jnp.where(moved, r_new - s.r - s.J @ delta, s.bend))
+                   jnp.where(moved, delta, s.last), jnp.where(moved, r_new - s.r - J @ delta, s.bend))
 
 
 def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: float,
-                  jac: Callable | None = None, limit=None) -> LMResult:
+                  jac: Callable | None = None, limit=None, free=None) -> LMResult:
     """Minimise |fn(z, args)|^2 from z0 by Levenberg-Marquardt (see the module docstring); jac as in `init`.
     The loop's first turn evaluates r and J at z0 (`advance` with first=True). limit: a traced cap on the
     iterations below max_steps (max_steps sizes the history, so it is static); 0 returns r and J at z0, which is
-    how the core evaluates its Jacobian with the solver's executable instead of compiling the Jacobian again."""
+    how the core evaluates its Jacobian with the solver's executable instead of compiling the Jacobian again.
+    free: 0/1 per unknown (traced): only those move, the others' columns of J are left out of every step (None:
+    all move); the returned J has every column, so that a caller who fits some unknowns gets the Jacobian of all
+    at the solution without evaluating it again."""
     cap = max_steps if limit is None else jnp.minimum(max_steps, limit)
     rj = jac or functools.partial(residual_and_jacobian, fn)
     r_shape, J_shape = jax.eval_shape(rj, z0, args)
@@ -188,7 +194,7 @@ def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: 
 
     def body(carry):
         s, hist, first = carry
-        s = advance(rj, s, args, rtol, atol, first)
+        s = advance(rj, s, args, rtol, atol, first, free)
         return s, hist.at[s.steps].set(s.r @ s.r), jnp.asarray(False)
 
     s, hist, _ = jax.lax.while_loop(lambda c: c[2] | (~c[0].converged & (c[0].steps < cap) & (c[0].lam < LAM_MAX)),
@@ -203,8 +209,9 @@ class LevenbergMarquardt:
     rtol: float
     atol: float
 
-    def __call__(self, fn: Callable, z0, args, max_steps: int, jac: Callable | None = None, limit=None) -> LMResult:
-        return least_squares(fn, z0, args, max_steps=max_steps, rtol=self.rtol, atol=self.atol, jac=jac, limit=limit)
+    def __call__(self, fn: Callable, z0, args, max_steps: int, jac: Callable | None = None, limit=None, free=None) -> LMResult:
+        return least_squares(fn, z0, args, max_steps=max_steps, rtol=self.rtol, atol=self.atol, jac=jac, limit=limit,
+                             free=free)
 
 
 __all__ = ["LMResult", "LMState", "LevenbergMarquardt", "damped_factor", "damped_step", "secant_acceleration",
