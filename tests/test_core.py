@@ -318,4 +318,3 @@ def test_jacobian_from_the_solver_program_is_jacfwd_and_predicted_is_readings(na
     J_end = problem.jacobian(sol.x)
     err = np.max(np.abs(sol.J - J_end)) / np.max(np.abs(J_end))
     assert err < 1e-12, err
-

@@ -229,7 +229,6 @@ def data_residual_and_jacobian(model, a_full, q, y, cov, w):
     if jacobian_mode(model) != "reverse":  # the pushforwards of the unit vectors share one primal pass (one closure solve)
         return residual_and_jacobian(lambda a, _: model.residuals(a, q, y, cov, w).reshape(-1), a_full, None)
 
-
     def one(sample):
         qi, yi, ci, wi = sample
         r, pullback = jax.vjp(lambda a: model.residuals(a, qi[None], yi[None], ci[None], wi[None]).reshape(-1), a_full)
