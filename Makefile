@@ -23,8 +23,9 @@ demo: $(STAMP)
 # reported as "worker crashed", the worker is replaced (at most 4 times), and pytest-rerunfailures
 # puts the test back in the queue once: `--reruns 1` counts the crash, while `--only-rerun` and
 # `--rerun-except` only ever filter ordinary failures; `--rerun-except .` matches every one, so an
-# ordinary failure is never rerun. (--dist loadfile cannot put a crashed test back.) No
-# persistent XLA cache: it is opt-in (JAXCAL_CACHE) since jax writes its entries in place.
+# ordinary failure is never rerun. (--dist loadfile cannot put a crashed test back.)
+# tests/conftest.py gives the run one XLA cache folder shared by both workers (removed at the end)
+# and compiles with XLA:CPU's elemental emitter, which compiles faster (docs/benchmarks.md).
 PYTEST_RUN := $(BIN)/python -m pytest -n 2 --dist worksteal --max-worker-restart 4 --reruns 1 --rerun-except .
 
 test: $(STAMP)
