@@ -198,3 +198,28 @@ def test_a_delta_with_a_bent_universal_joint_closes_and_is_calibrated(rb):
     assert "j16.a1" not in fit.estimated and set(fit.estimated) == set(free[1:]), fit.estimated
     err = np.abs(np.asarray(fit.a) - np.asarray(a_true))[[rb.index(n) for n in free[1:]]]
     assert fit.converged and err.max() < 1e-7, (fit.converged, err.max())  # measured 3.0e-8 m
+
+
+@pytest.mark.parametrize("needing", [0, 1, dl.TRACKED_CHUNK, dl.TRACKED_CHUNK + 1, 23])
+def test_tracked_samples_equals_the_continuation_over_the_whole_batch(needing):
+    """`dl.tracked_samples` (the continuation on the samples that need it, a chunk at a time) gives every sample
+    what the continuation vmapped over the whole batch with the others inactive gives: none, one, a full chunk,
+    one more than a chunk, and all 23 samples needing it, scattered in the batch."""
+    from jaxcal.closure.track import Tracked
+
+    n = 23
+    rng = np.random.default_rng(needing)
+    q = jnp.asarray(rng.normal(size=(n, 3)))
+    x0 = jnp.asarray(rng.normal(size=(n, 5)))
+    need = jnp.asarray(np.isin(np.arange(n), rng.permutation(n)[:needing]))
+
+    def run(qi, xi, active):  # a stand-in continuation: its result depends on the sample, inactive lanes keep x0
+        steps = jnp.asarray(1 + jnp.sum(jnp.abs(qi)) * 10, jnp.int32)
+        return Tracked(jnp.where(active, xi + jnp.sum(qi) * jnp.arange(5.0), xi), active & (qi[0] > 0),
+                       jnp.where(active, steps, 0), active)
+
+    got = jax.jit(lambda q, x, nd: dl.tracked_samples(run, q, x, nd))(q, x0, need)
+    want = jax.vmap(run)(q, x0, need)
+    np.testing.assert_allclose(got.theta, want.theta, rtol=1e-15, atol=1e-15)  # the same arithmetic, lanes of other widths
+    for g, w in zip(got[1:], want[1:]):  # reached, steps, ref_ok: exactly
+        np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
