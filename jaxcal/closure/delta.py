@@ -384,7 +384,8 @@ def free_joints(robot, a, qj):
 
     The fast path (Newton from the nominal direct solution) is kept where it closes on the nominal
     branch; every other sample goes through the general path, `jaxcal.closure.track`'s continuation
-    from the nominal robot's closed configuration at the same setting (`tracked`)."""
+    from the nominal robot's closed configuration at the same setting, run on those samples only
+    (`tracked_samples`)."""
     a, qj = jax.lax.stop_gradient(a), jax.lax.stop_gradient(qj)
     x0, x_fast, fast_ok, closes, valid, k_fast = jax.vmap(functools.partial(_fast_single, robot, a))(qj)
     need = valid & ~fast_ok
