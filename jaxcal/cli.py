@@ -888,5 +888,24 @@ def main(argv=None) -> int:
         return EXIT_INTERRUPTED
 
 
+def run() -> None:
+    """The `jaxcal` console command: `main()`, then leave without Python's teardown of the interpreter.
+
+    Every output is written (atomically) and closed when `main` returns; tearing down jax/XLA, scipy and
+    matplotlib object by object took 0.55-0.65 s of a 5.5 s warm `jaxcal calibrate` on TALOS. So the
+    output streams and log handlers are flushed, pending jax effects awaited, and the process ends with
+    `os._exit` (its exit code that of `main`)."""
+    code = main()
+    import logging
+
+    import jax
+
+    jax.effects_barrier()
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

@@ -170,3 +170,21 @@ def test_calibrated_robot_keeps_the_input_format():
     urdf_builtins = [n for n in jc.robots.available() if jc.robots.get(n).bodies[0].convention == "urdf"]
     for name in urdf_builtins:  # built-ins read from a URDF are written back as URDF
         assert calibrated_robot_file(jc.robots.get(name)).endswith(".urdf")
+
+
+def test_the_console_command_flushes_its_output_and_keeps_the_exit_code(tmp_path):
+    """`jaxcal` (jaxcal.cli:run) ends with os._exit after main: what it printed to a pipe and the file it
+    wrote are complete, and the exit code is main's (0 here, 2 for a bad input)."""
+    import subprocess
+    import sys
+
+    def console(*args):
+        code = f"import sys; from jaxcal.cli import run; sys.argv = ['jaxcal', *{list(args)!r}]; run()"
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+
+    ok = console("--no-cache", "simulate", "mrr1", "--n", "5", "--out", "s.csv")
+    assert ok.returncode == 0, ok.stderr
+    assert ok.stdout == "wrote 5 simulated position samples of mrr1 to s.csv\n"
+    assert len(jc.Dataset.from_csv(str(tmp_path / "s.csv"))) == 5
+    bad = console("--no-cache", "calibrate", "nothere.urdf", "s.csv")
+    assert bad.returncode == 2 and bad.stderr.strip().startswith("error: nothere.urdf: no such robot file")

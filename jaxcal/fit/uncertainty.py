@@ -21,7 +21,6 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.stats
 
 from jaxcal.fit import core
 from jaxcal.fit.data import Dataset
@@ -30,6 +29,7 @@ from jaxcal.fit.simulate import simulate
 from jaxcal.forward import forward
 from jaxcal.measure import as_device, key_normal
 from jaxcal.shard import over_devices
+from jaxcal.tails import chi2_ppf
 
 
 # ------------------------------------------------------------------------------------------
@@ -99,7 +99,7 @@ def confidence_intervals(a, cov, alpha: float = 0.05, simultaneous: bool = False
     ellipsoid (a - a_hat)^T Sigma^-1 (a - a_hat) = chi2_k(1 - alpha) (eq 3.41-3.42)."""
     a = np.asarray(a)
     k = len(a) if simultaneous else 1
-    half = np.sqrt(scipy.stats.chi2.ppf(1 - alpha, k) * np.diag(cov))
+    half = np.sqrt(chi2_ppf(1 - alpha, k) * np.diag(cov))
     return a - half, a + half
 
 
@@ -114,7 +114,7 @@ def ellipsoid_coverage(samples, center, cov, alpha: float = 0.05):
     the radius that would hold 1 - alpha of the samples (the thesis: 86 % inside r = 6.2; 95 % needs 7.1)."""
     d2 = mahalanobis_sq(samples, center, cov)
     k = np.asarray(samples).shape[1]
-    r2 = scipy.stats.chi2.ppf(1 - alpha, k)
+    r2 = chi2_ppf(1 - alpha, k)
     return float(np.mean(d2 <= r2)), float(np.sqrt(r2)), float(np.sqrt(np.quantile(d2, 1 - alpha)))
 
 
@@ -124,7 +124,7 @@ def chi2_qq(samples):
     X = np.asarray(samples)
     d2 = np.sort(mahalanobis_sq(X, X.mean(0), np.cov(X.T)))
     n, p = X.shape
-    quant = scipy.stats.chi2.ppf((np.arange(1, n + 1) - 0.5) / n, p)
+    quant = chi2_ppf((np.arange(1, n + 1) - 0.5) / n, p)
     return d2, quant, float(np.corrcoef(d2, quant)[0, 1])
 
 

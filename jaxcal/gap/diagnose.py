@@ -45,7 +45,6 @@ import time
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg
-import scipy.stats
 
 from jaxcal.fit import core
 from jaxcal.fit.base import base_set
@@ -56,6 +55,7 @@ from jaxcal.gap import where as wh
 from jaxcal.gap.baseline import baseline_calibrations, final_bias
 from jaxcal.gap.effect import get_effect, registered_effects
 from jaxcal.gap.model import GapModel, gap_model, input_basis
+from jaxcal.tails import chi2_sf, f_sf
 
 SEPARABLE_TOL = 1e-6
 MAX_EFFECT_COLUMNS = 18  # effect columns the selected model may add (max_effects x at most 6)
@@ -556,7 +556,7 @@ def score_variants(lin: Linear, cols0, variants, skip) -> tuple[float, list[Scor
         dof = n_rows - len(cols)
         F = ((rss0 - rss) / k) / max(rss / dof, 1e-300)
         out.append(Score(sse, sse_pos, 0.5 * n_rows * np.log(sse0 / max(sse, 1e-300)) - k,
-                         float(scipy.stats.f.sf(F, k, dof)) if dof > 0 else 1.0,
+                         float(f_sf(F, k, dof)) if dof > 0 else 1.0,
                          n_rows * np.log(rss / n_rows) + len(cols) * np.log(n_rows), k))
     return sse0, out
 
@@ -721,7 +721,7 @@ def noise_test(r, sigma_rows, n_params: int) -> float:
     larger than the instrument's noise, i.e. structure is left. r: (n, k) residuals (m, rad), sigma_rows: (k,)."""
     chi2 = float(np.sum((np.asarray(r) / np.asarray(sigma_rows)[None, :]) ** 2))
     dof = max(np.size(r) - n_params, 1)
-    return float(scipy.stats.chi2.sf(chi2, dof))
+    return float(chi2_sf(chi2, dof))
 
 
 def heldout(prep: Prepared, base: Baseline, sel: Selection, fit: Refit, data: Dataset,

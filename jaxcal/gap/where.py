@@ -12,8 +12,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import scipy.spatial
-import scipy.stats
+
+from jaxcal.tails import f_sf, norm_sf
 
 
 @dataclasses.dataclass
@@ -71,8 +71,10 @@ def _knn_share(nbr, r):
 def neighbours(z, k: int) -> np.ndarray:
     """(n, k) indices of each point's k nearest other points (Euclidean), by a KD-tree: O(n log n) time and
     O(n k) memory (the dense n x n distance matrix took 150 MB and an n^2 log n sort at n = 2500)."""
+    from scipy.spatial import cKDTree  # imported here: 0.1 s that only this analysis needs
+
     n = len(z)
-    _, idx = scipy.spatial.cKDTree(z).query(z, k=k + 1)
+    _, idx = cKDTree(z).query(z, k=k + 1)
     keep = idx != np.arange(n)[:, None]
     keep[keep.all(axis=1), -1] = False  # self not among the k + 1 (ties at distance 0): drop the farthest
     return idx[keep].reshape(n, k)
@@ -102,7 +104,7 @@ def decompose(r, bases: dict, tips, directions=None, k_neighbours: int = 5, n_pe
         if dof <= 0:
             continue
         F = (s / (k * m)) / max((1 - s) / dof, 1e-300)
-        feats.append(Feature(name, s, float(scipy.stats.f.sf(F, k * m, dof)), k))
+        feats.append(Feature(name, s, float(f_sf(F, k * m, dof)), k))
     m = r.shape[1]
     if n > 3 * k_neighbours:
         z = (tips - tips.mean(0)) / np.maximum(tips.std(0), 1e-12)
@@ -111,7 +113,7 @@ def decompose(r, bases: dict, tips, directions=None, k_neighbours: int = 5, n_pe
         rng = np.random.default_rng(seed)
         null = np.array([_knn_share(nbr, r[rng.permutation(n)]) for _ in range(n_permutations)])
         zscore = (obs - null.mean()) / max(null.std(), 1e-12)
-        feats.append(Feature("workspace (local, nearest neighbours)", max(obs, 0.0), float(scipy.stats.norm.sf(zscore)), k_neighbours))
+        feats.append(Feature("workspace (local, nearest neighbours)", max(obs, 0.0), float(norm_sf(zscore)), k_neighbours))
     return sorted(feats, key=lambda f: f.p_value)
 
 
