@@ -21,11 +21,14 @@ DEFAULT_CACHE_DIR = os.path.join(os.path.expanduser("~"), ".cache", "jaxcal", "x
 
 
 def enable_compilation_cache(path: str | None = None) -> str:
-    """Keep compiled XLA code in `path` (default ~/.cache/jaxcal/xla) across processes; returns the folder."""
+    """Keep compiled XLA code in `path` (default ~/.cache/jaxcal/xla) across processes, and the lowered solvers
+    in its subfolder exported (`jaxcal.exported`); returns the folder."""
+    from jaxcal.exported import use_folder
     from jaxcal.xla_cache import install
 
     path = path or DEFAULT_CACHE_DIR
     install(path)
+    use_folder(path)
     return path
 
 

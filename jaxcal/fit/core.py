@@ -41,7 +41,7 @@ import lineax as lx
 import numpy as np
 import optimistix as optx
 
-from jaxcal import compiled
+from jaxcal import compiled, exported
 from jaxcal.closure.core import forward_with_status
 from jaxcal.fit.base import base_set
 from jaxcal.fit.csvfile import DataError
@@ -374,14 +374,19 @@ def compiled_model_solver(x0, args, model, settings: Settings, batched=()):
     """(executable, seconds spent compiling: 0 when reused), called as exe(x0, args, limit) with limit the cap
     on iterations (`step_limit`). One compile per residual model, settings, argument shapes and placement (arrays
     committed to another JAX device get their own executable); at most _COMPILED_MAX are kept (robots hash by
-    identity, so the cache is bounded)."""
+    identity, so the cache is bounded). With a compilation-cache folder in use, the lowered program is kept
+    there too (`jaxcal.exported`): a later process skips tracing it."""
     placed = [str(v.sharding) for v in jax.tree_util.tree_leaves((x0, args)) if isinstance(v, jax.Array) and v.committed]
     key = (model, settings, tuple(batched), signature((x0, args)), tuple(sorted(set(placed))))
     if key in _COMPILED:
         _COMPILED.move_to_end(key)
         return _COMPILED[key], 0.0
     t = time.perf_counter()
-    exe = _solve_jit.lower(x0, args, step_limit(0), model=model, settings=settings, batched=tuple(batched)).compile()
+    static = dict(model=model, settings=settings, batched=tuple(batched))
+    if placed:  # committed to another device: lowered for that placement, not kept across processes
+        exe = _solve_jit.lower(x0, args, step_limit(0), **static).compile()
+    else:
+        exe = exported.lower(_solve_jit, (x0, args, step_limit(0)), static).compile()
     _COMPILED[key] = exe
     if len(_COMPILED) > _COMPILED_MAX:
         _COMPILED.popitem(last=False)

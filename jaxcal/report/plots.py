@@ -20,10 +20,13 @@ def plain_text(text) -> str:
 
 
 def save_atomic(fig, path: str, dpi: int = 120) -> str:
-    """Save a figure to a temp file beside `path`, then rename: no half-written file is left."""
+    """Save a figure to a temp file beside `path`, then rename: no half-written file is left. A figure with a
+    layout engine (constrained layout) is already fitted to its canvas; others are cropped to their content
+    ("tight", which draws the figure twice: 0.1-0.3 s a figure on this machine)."""
+    tight = None if fig.get_layout_engine() is not None else "tight"
     try:
         with atomic_path(path, suffix=os.path.splitext(path)[1]) as tmp:
-            fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
+            fig.savefig(tmp, dpi=dpi, bbox_inches=tight)
     finally:
         plt.close(fig)
     return path

@@ -1,0 +1,126 @@
+"""Lowered programs kept across processes (`jax.export`), so that a second process skips tracing them.
+
+The persistent compilation cache (`jaxcal.xla_cache`) skips XLA's compile, but each process still traces
+and lowers every program it runs: the TALOS solver's trace and lowering took 1.0 s of a 5 s warm
+`jaxcal calibrate`. When a cache folder is enabled, `lower` keeps each program exported by `jax.export`
+(serialized StableHLO) in `<folder>/exported`, under a fingerprint of everything its trace reads; a later
+process deserializes it and lowers only the call of it (0.2 s for that solver, compile served by the
+compilation cache). Entries are `AtomicFileCache` files: written by rename, checked by SHA-256 on read.
+
+A stale program would give a wrong answer silently, so the fingerprint (SHA-256) is conservative:
+jaxcal's source (every .py file of the package), the jax and jaxlib versions, the backend, the x64 flag,
+the function's name, its static arguments by their pickled content (the robot, device and settings:
+their arrays, names and structure) and the shapes and dtypes of its array arguments. Static arguments
+whose pickle refers to code outside jaxcal, jax, numpy and the standard library (a user's device class
+or function, whose code the fingerprint cannot see), or that cannot be pickled, are not cached: those
+programs are traced every time, as without a cache. So is a program `jax.export` cannot serialize.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import io
+import pathlib
+import pickle
+import types
+
+import jax
+import jaxlib
+
+from jaxcal.xla_cache import AtomicFileCache
+
+# Top-level packages whose code a pickled static argument may name: their code is covered by the versions
+# and the source digest in the fingerprint (or does not change within one Python).
+KNOWN_CODE = frozenset({"jaxcal", "jax", "jaxlib", "numpy", "optimistix", "equinox", "lineax", "builtins",
+                        "collections", "functools", "operator", "math", "copyreg", "_codecs", "types"})
+
+_FOLDER: list[pathlib.Path | None] = [None]
+
+
+def use_folder(folder: str | pathlib.Path | None) -> None:
+    """Keep exported programs in `folder`/exported (made at the first program kept); None: none kept."""
+    _FOLDER[0] = pathlib.Path(folder) / "exported" if folder else None
+
+
+@functools.lru_cache(maxsize=4)
+def _cache_in(folder: pathlib.Path) -> AtomicFileCache:
+    return AtomicFileCache(folder)
+
+
+@functools.lru_cache(maxsize=1)
+def source_digest() -> str:
+    """SHA-256 of every .py file of the jaxcal package (path and content), in path order."""
+    root = pathlib.Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        h.update(str(path.relative_to(root)).encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+class _UnknownCode(Exception):
+    """A static argument names code the fingerprint cannot see."""
+
+
+class _CheckedPickler(pickle.Pickler):
+    """A pickler that refuses functions and classes from outside KNOWN_CODE."""
+
+    def reducer_override(self, obj):
+        if isinstance(obj, (type, types.FunctionType, types.BuiltinFunctionType, types.MethodType)):
+            module = getattr(obj, "__module__", None) or ""
+            if module.partition(".")[0] not in KNOWN_CODE or "<locals>" in getattr(obj, "__qualname__", ""):
+                raise _UnknownCode(f"{module}.{getattr(obj, '__qualname__', obj)}")
+        return NotImplemented
+
+
+def _content(obj) -> bytes | None:
+    """The pickled content of the static arguments, or None when the fingerprint cannot cover them."""
+    buf = io.BytesIO()
+    try:
+        _CheckedPickler(buf, protocol=5).dump(obj)
+    except (_UnknownCode, pickle.PicklingError, TypeError, AttributeError, RecursionError):
+        return None
+    return buf.getvalue()
+
+
+def _shapes(args) -> str:
+    """The array arguments' tree structure, shapes, dtypes and weak typing, as text."""
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+    specs = [(tuple(getattr(v, "shape", ())), str(getattr(v, "dtype", type(v).__name__)),
+              bool(getattr(v, "weak_type", False))) for v in leaves]
+    return f"{treedef}|{specs}"
+
+
+def fingerprint(fn, args: tuple, static: dict) -> str | None:
+    """The cache key of `fn(*args, **static)`'s program, or None when it must not be cached."""
+    content = _content(sorted(static.items()))
+    if content is None:
+        return None
+    h = hashlib.sha256()
+    for part in (source_digest(), jax.__version__, jaxlib.__version__, jax.default_backend(),
+                 str(jax.config.jax_enable_x64), f"{fn.__module__}.{fn.__qualname__}", _shapes(args)):
+        h.update(part.encode())
+        h.update(b"\0")
+    h.update(content)
+    return h.hexdigest()
+
+
+def lower(fn, args: tuple, static: dict):
+    """`fn.lower(*args, **static)` (fn a `jax.jit` function, `static` its static arguments), through the
+    exported-program cache when a folder is in use and the program can be fingerprinted and serialized."""
+    key = fingerprint(fn, args, static) if _FOLDER[0] is not None else None
+    if key is None:
+        return fn.lower(*args, **static)
+    cache = _cache_in(_FOLDER[0])
+    blob = cache.get(key)
+    if blob is None:
+        try:
+            program = jax.export.export(fn)(*args, **static)
+            blob = program.serialize()
+        except (ValueError, NotImplementedError, ImportError):  # a custom call without a stable ABI; no flatbuffers
+            return fn.lower(*args, **static)
+        cache.put(key, blob)
+    else:
+        program = jax.export.deserialize(blob)
+    return jax.jit(program.call).lower(*args)

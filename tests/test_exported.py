@@ -1,0 +1,85 @@
+"""jaxcal.exported: solvers lowered once, kept in the cache folder, read back by a later run with the same
+result; the fingerprint follows the content of what the trace reads, and code it cannot see is not cached."""
+
+import copy
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+import jaxcal as jc
+from jaxcal import compiled, exported
+from jaxcal.fit.core import RobotDevice, Settings, _solve_jit
+
+
+@pytest.fixture
+def folder(tmp_path):
+    """A fresh exported-program folder for the test; the run's folder is put back after it."""
+    before = exported._FOLDER[0]
+    exported.use_folder(tmp_path)
+    yield tmp_path / "exported"
+    exported._FOLDER[0] = before
+    compiled.clear()
+
+
+def _fit(robot, data):
+    compiled.clear()  # each fit lowers its solver again: from the trace or from the folder
+    return jc.identify(robot, data, known=("dev", "tool"))
+
+
+@pytest.mark.parametrize("name", ["mrr1", "fourbar2d"])  # an open chain (reverse mode), a closed loop (forward mode)
+def test_a_solver_read_back_from_the_folder_gives_the_same_fit(name, folder, monkeypatch):
+    rb = jc.robots.get(name)
+    a_true = jc.perturb(rb, 1e-3, seed=1)
+    data = jc.simulate(rb, a_true, jc.random_configurations(rb, 24, seed=2), "position", noise=1e-5, seed=3)
+    first = _fit(rb, data)
+    kept = sorted(folder.iterdir())
+    assert kept, "the solver was not kept"
+    read = []
+    monkeypatch.setattr(jax.export, "deserialize", lambda blob, _d=jax.export.deserialize: read.append(1) or _d(blob))
+    again = _fit(rb, data)
+    assert read and sorted(folder.iterdir()) == kept  # read back, nothing new written
+    exported.use_folder(None)
+    traced = _fit(rb, data)
+    for fit in (again, traced):
+        np.testing.assert_array_equal(np.asarray(fit.a), np.asarray(first.a))
+        assert fit.iterations == first.iterations and fit.converged == first.converged
+
+
+def _static(robot, device="position", settings=Settings()):
+    return dict(model=RobotDevice(robot, jc.make_device(device)), settings=settings, batched=())
+
+
+ARGS = (np.zeros(3), {"q": np.zeros((10, 6))}, np.asarray(0, np.int32))
+
+
+def test_the_fingerprint_follows_content_not_identity():
+    rb = jc.robots.get("stanford")
+    key = exported.fingerprint(_solve_jit, ARGS, _static(rb))
+    assert key is not None and len(key) == 64
+    assert exported.fingerprint(_solve_jit, ARGS, _static(copy.deepcopy(rb))) == key  # an equal copy: same program
+    moved = dataclasses.replace(rb, nominal_np=rb.nominal_np + 1e-12)
+    others = [_static(moved), _static(rb, "pose"), _static(rb, settings=Settings(rtol=1e-7)),
+              _static(jc.robots.get("mrr1"))]
+    keys = {exported.fingerprint(_solve_jit, ARGS, s) for s in others}
+    keys.add(exported.fingerprint(_solve_jit, (np.zeros(3), {"q": np.zeros((11, 6))}, ARGS[2]), _static(rb)))
+    keys.add(exported.fingerprint(_solve_jit, (np.zeros(3, np.float32), *ARGS[1:]), _static(rb)))
+    assert len(keys) == 6 and key not in keys  # six different programs, none the first
+
+
+class UserDevice(type(jc.make_device("position"))):
+    """A device defined outside jaxcal: its code is not in the fingerprint."""
+
+
+def test_code_the_fingerprint_cannot_see_is_not_cached():
+    rb = jc.robots.get("stanford")
+    user = dict(model=RobotDevice(rb, UserDevice.build()), settings=Settings(), batched=())
+    assert exported.fingerprint(_solve_jit, ARGS, user) is None
+    assert exported.fingerprint(_solve_jit, ARGS, _static(rb) | {"settings": lambda: 0}) is None
+
+
+@pytest.mark.parametrize("name", ["stanford", "mrr1", "delta", "fourbar3d", "kiwibot", "talos_left_arm", "ur10"])
+def test_every_built_in_robot_can_be_fingerprinted(name):
+    """A built-in robot that could not be fingerprinted would silently never be kept."""
+    assert exported.fingerprint(_solve_jit, ARGS, _static(jc.robots.get(name))) is not None
