@@ -24,7 +24,8 @@ demo: $(STAMP)
 # puts the test back in the queue once: `--reruns 1` counts the crash, while `--only-rerun` and
 # `--rerun-except` only ever filter ordinary failures; `--rerun-except .` matches every one, so an
 # ordinary failure is never rerun. (--dist loadfile cannot put a crashed test back.)
-# tests/conftest.py gives the run one XLA cache folder shared by both workers (removed at the end)
+# tests/conftest.py gives the runs of this checkout one cache of compiled code (.cache/test-xla), shared by both
+# workers and kept for the next run (a fresh clone starts empty),
 # and compiles with XLA:CPU's elemental emitter, which compiles faster (docs/benchmarks.md).
 PYTEST_RUN := $(BIN)/python -m pytest -n 2 --dist worksteal --max-worker-restart 4 --reruns 1 --rerun-except .
 
@@ -41,4 +42,4 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/table.py
 
 clean:
-	rm -rf $(VENV) demo-output .pytest_cache
+	rm -rf $(VENV) demo-output .pytest_cache .cache

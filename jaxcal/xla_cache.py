@@ -10,6 +10,7 @@ writing leaves a torn entry that every later process reads, and a reader racing 
 - get: the SHA-256 is checked; a short, torn or altered entry is a miss (and is removed), so jax compiles again.
 
 Temporary files left by killed writers are removed when the cache is opened if they are more than an hour old.
+A read touches the entry, so `remove_unused` can drop what no run has used for a while.
 
 jax has no public hook for a cache backend: `install` sets jax's compilation-cache module state
 (`jax._src.compilation_cache._cache`), checked against jax 0.10.2. If that module changes, `install` raises
@@ -18,6 +19,7 @@ jax has no public hook for a cache backend: `install` sets jax's compilation-cac
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import pathlib
@@ -56,6 +58,8 @@ class AtomicFileCache(CacheInterface):
         if len(data) <= DIGEST or hashlib.sha256(value).digest() != digest:
             path.unlink(missing_ok=True)
             return None
+        with contextlib.suppress(OSError):  # the entry's age is the time since it was last used (`remove_unused`)
+            os.utime(path)
         return value
 
     def put(self, key: str, value: bytes) -> None:
@@ -84,6 +88,20 @@ def remove_stale_temporaries(folder: pathlib.Path, older_than_s: float) -> None:
                 tmp.unlink()
         except OSError:
             pass
+
+
+def remove_unused(folder: str | os.PathLike, older_than_s: float) -> int:
+    """Remove the entries (in `folder` and its subfolders) neither written nor read for `older_than_s`;
+    returns how many. A process reading one at that moment gets a miss and compiles again."""
+    now, removed = time.time(), 0
+    for entry in pathlib.Path(folder).rglob(f"*{SUFFIX}"):
+        try:
+            if now - entry.stat().st_mtime > older_than_s:
+                entry.unlink()
+                removed += 1
+        except OSError:
+            pass
+    return removed
 
 
 def install(path: str | os.PathLike) -> AtomicFileCache:

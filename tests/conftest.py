@@ -1,9 +1,7 @@
 import faulthandler
 import os
-import shutil
 import subprocess
 import sys
-import tempfile
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 # The suite is bound by XLA compile time, and XLA:CPU's older elemental code generator compiles the same HLO faster
@@ -26,12 +24,21 @@ def _xla_accepts(flags: str) -> bool:
 
 if "XLA_FLAGS" not in os.environ and _xla_accepts(TEST_XLA_FLAGS):
     os.environ["XLA_FLAGS"] = TEST_XLA_FLAGS
-# One persistent XLA cache per test run, made by the first pytest process (the xdist controller) and inherited by
-# its workers through the environment, so a function compiled by one worker is loaded by the other
-# (jaxcal/xla_cache.py makes sharing safe); removed when the run ends. Never ~/.cache. JAXCAL_CACHE=0 turns it off.
+# One persistent cache of compiled XLA code and lowered solvers for the test runs of this checkout (TEST_CACHE,
+# git-ignored), set by the first pytest process (the xdist controller) and inherited by its workers through the
+# environment: a program compiled by one worker is loaded by the other, and by the next run (jaxcal/xla_cache.py
+# and jaxcal/exported.py make sharing safe; their keys hash the program, the flags, the jax version and, for
+# the lowered solvers, jaxcal's source). A fresh clone (CI) starts empty. Entries no run has used for
+# TEST_CACHE_DAYS are removed at the start of a run. Never ~/.cache; JAXCAL_CACHE=DIR names another folder,
+# JAXCAL_CACHE=0 turns it off.
+TEST_CACHE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".cache", "test-xla")
+TEST_CACHE_DAYS = 7
 if "JAXCAL_CACHE" not in os.environ:
-    os.environ["JAXCAL_CACHE"] = os.environ["JAXCAL_TEST_CACHE"] = tempfile.mkdtemp(prefix="jaxcal-test-xla-")
-    os.environ["JAXCAL_TEST_CACHE_OWNER"] = str(os.getpid())
+    os.makedirs(TEST_CACHE, exist_ok=True)
+    os.environ["JAXCAL_CACHE"] = TEST_CACHE  # before jaxcal is imported: it reads JAXCAL_CACHE then
+    from jaxcal.xla_cache import remove_unused  # noqa: E402
+
+    remove_unused(TEST_CACHE, TEST_CACHE_DAYS * 86400.0)
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
@@ -65,12 +72,6 @@ def pytest_configure(config):
     """Keep a handle on the real stderr (output capture is suspended while configuring) for the dumps."""
     global _watchdog_fd
     _watchdog_fd = os.dup(2)
-
-
-def pytest_unconfigure(config):
-    """The process that made the run's XLA cache folder removes it."""
-    if os.environ.get("JAXCAL_TEST_CACHE_OWNER") == str(os.getpid()):
-        shutil.rmtree(os.environ["JAXCAL_TEST_CACHE"], ignore_errors=True)
 
 
 def watchdog_limit(item) -> float:

@@ -68,6 +68,21 @@ def test_stale_temporaries_of_killed_writers_are_removed(tmp_path):
     assert not old.exists() and fresh.exists()  # a fresh one may be a live writer's
 
 
+
+def test_entries_no_run_used_for_a_while_are_removed_and_a_read_is_a_use(tmp_path):
+    from jaxcal.xla_cache import AtomicFileCache, remove_unused
+
+    cache, sub = AtomicFileCache(tmp_path), AtomicFileCache(tmp_path / "exported")
+    cache.put("old", b"a")
+    cache.put("read", b"b")
+    sub.put("deep", b"c")
+    cache.put("new", b"d")
+    for entry in (cache.entry("old"), cache.entry("read"), sub.entry("deep")):
+        os.utime(entry, (0, 0))
+    assert cache.get("read") == b"b"  # a read marks the entry as used now
+    assert remove_unused(tmp_path, 86400.0) == 2
+    assert [cache.get(k) for k in ("old", "read", "new")] == [None, b"b", b"d"] and sub.get("deep") is None
+
 COMPILE = ("import jax, jax.numpy as jnp, jaxcal; jaxcal.enable_compilation_cache({folder!r}); "
            "from jax._src import monitoring; hits = []; "
            "monitoring.register_event_listener(lambda e, **k: hits.append(e) if e.endswith('cache_hits') else None); "
