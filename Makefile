@@ -38,7 +38,11 @@ test-all: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check jaxcal tests benchmarks
 
-bench: $(STAMP)
+$(VENV)/.bench-installed: $(STAMP)
+	$(BIN)/python -m pip install -q -e '.[dev,bench]'
+	touch $@
+
+bench: $(VENV)/.bench-installed
 	$(BIN)/python benchmarks/table.py
 
 clean:

@@ -5,6 +5,8 @@ measured in the same process, compile time apart, medians.
 - identification: the whole `jc.identify` call and its core run (`timings["run_s"]`: start, base set, solves, final
   Jacobian) vs scipy's MINPACK LM with finite differences on the same unknowns from the same start
   (benchmarks/identify.py), with jaxcal's LM and optimistix's;
+- forward kinematics and the joint Jacobian of the real TALOS arm's URDF vs pinocchio (`pip install pin`, which
+  `make bench` installs), called per configuration from Python (benchmarks/pinocchio_fk.py);
 - identification of the real TALOS arm (61 mocap positions) and of the Delta (125 simulated positions), default
   options: the whole `jc.identify` call vs scipy's MINPACK LM with finite differences on jaxcal's own compiled
   residual, same unknowns (the ones identify estimated), same start (identify's frames-only point).
@@ -24,6 +26,7 @@ import fk
 import identify
 import jax
 import numpy as np
+import pinocchio_fk
 import scipy.optimize
 from _common import first_and_median, median_time
 
@@ -44,6 +47,19 @@ def fk_rows(max_n: int) -> list[str]:
         loop = f"{t_loop / t_jax:.0f}x" if t_loop == t_loop else ""
         rows.append(f"| FK, Stanford, N = {n:.0e} | {compile_s:.2f} s | {t_jax * 1e3:.2f} ms | numpy {t_np * 1e3:.2f} ms "
                     f"| {t_np / t_jax:.1f}x | {loop} |")
+    return rows
+
+
+def pinocchio_rows(n: int = 10_000) -> list[str]:
+    rows = []
+    for r in pinocchio_fk.main(n):
+        if r["t_pin"] != r["t_pin"]:
+            rows.append(f"| {r['what']}, TALOS left arm URDF, N = {n:.0e} | {r['compile_s']:.2f} s | {r['t_jc'] * 1e3:.2f} ms "
+                        f"| pinocchio not installed (`pip install pin`) | | |")
+            continue
+        rows.append(f"| {r['what']}, TALOS left arm URDF, N = {n:.0e} | {r['compile_s']:.2f} s | {r['t_jc'] * 1e3:.2f} ms "
+                    f"| pinocchio, a Python loop over its C++ call: {r['t_pin'] * 1e3:.1f} ms "
+                    f"({r['t_pin'] / n * 1e6:.2f} us a configuration) | {r['t_pin'] / r['t_jc']:.1f}x | agree to 1e-12 |")
     return rows
 
 
@@ -106,7 +122,7 @@ def main(argv=None):
     head = [f"Machine: {machine_line()}.", "",
             "| case | compile | jaxcal (median) | baseline, same process (median) | speed-up | other |",
             "|---|---|---|---|---|---|"]
-    rows = fk_rows(args.max_n) + identify_rows() + own_residual_rows()
+    rows = fk_rows(args.max_n) + pinocchio_rows() + identify_rows() + own_residual_rows()
     text = "\n".join(head + rows + ["", f"Whole run {time.perf_counter() - t0:.0f} s.", ""])
     write_text_atomic(args.out, text)
     print(text)

@@ -8,9 +8,10 @@ process deserializes it and lowers only the call of it (0.2 s for that solver, c
 compilation cache). Entries are `AtomicFileCache` files: written by rename, checked by SHA-256 on read.
 
 A stale program would give a wrong answer silently, so the fingerprint (SHA-256) is conservative:
-jaxcal's source (every .py file of the package), the jax and jaxlib versions, the backend, the x64 flag,
-the function's name, its static arguments by their pickled content (the robot, device and settings:
-their arrays, names and structure) and the shapes and dtypes of its array arguments. Static arguments
+jaxcal's source (every .py file of the package), the jax and jaxlib versions, the backend, the jax
+settings that change lowering (x64, matmul precision, promotion rules), the function's name, its static
+arguments by their pickled content (the robot, device and settings: their arrays, names and structure)
+and the shapes and dtypes of its array arguments. Static arguments
 whose pickle refers to code outside jaxcal, jax, numpy and the standard library (a user's device class
 or function, whose code the fingerprint cannot see), or that cannot be pickled, are not cached: those
 programs are traced every time, as without a cache. So is a program `jax.export` cannot serialize.
@@ -34,6 +35,9 @@ from jaxcal.xla_cache import AtomicFileCache
 # and the source digest in the fingerprint (or does not change within one Python).
 KNOWN_CODE = frozenset({"jaxcal", "jax", "jaxlib", "numpy", "optimistix", "equinox", "lineax", "builtins",
                         "collections", "functools", "operator", "math", "copyreg", "_codecs", "types"})
+
+# jax settings read while tracing and lowering (dtypes, precision of products, promotion rules)
+LOWERING_CONFIG = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion", "jax_numpy_rank_promotion")
 
 _FOLDER: list[pathlib.Path | None] = [None]
 
@@ -92,14 +96,19 @@ def _shapes(args) -> str:
     return f"{treedef}|{specs}"
 
 
+def _lowering_config() -> str:
+    """The jax settings that change how a traced program is lowered."""
+    return repr([getattr(jax.config, name) for name in LOWERING_CONFIG])
+
+
 def fingerprint(fn, args: tuple, static: dict) -> str | None:
     """The cache key of `fn(*args, **static)`'s program, or None when it must not be cached."""
     content = _content(sorted(static.items()))
     if content is None:
         return None
     h = hashlib.sha256()
-    for part in (source_digest(), jax.__version__, jaxlib.__version__, jax.default_backend(),
-                 str(jax.config.jax_enable_x64), f"{fn.__module__}.{fn.__qualname__}", _shapes(args)):
+    for part in (source_digest(), jax.__version__, jaxlib.__version__, jax.default_backend(), _lowering_config(),
+                 f"{fn.__module__}.{fn.__qualname__}", _shapes(args)):
         h.update(part.encode())
         h.update(b"\0")
     h.update(content)
