@@ -19,6 +19,7 @@ programs are traced every time, as without a cache. So is a program `jax.export`
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import io
@@ -119,9 +120,12 @@ def lower(fn, args: tuple, static: dict):
     """`fn.lower(*args, **static)` (fn a `jax.jit` function, `static` its static arguments), through the
     exported-program cache when a folder is in use and the program can be fingerprinted and serialized."""
     key = fingerprint(fn, args, static) if _FOLDER[0] is not None else None
-    if key is None:
+    try:
+        cache = _cache_in(_FOLDER[0]) if key is not None else None
+    except OSError:  # the folder cannot be made (read-only, a file in the way): nothing kept
+        cache = None
+    if cache is None:
         return fn.lower(*args, **static)
-    cache = _cache_in(_FOLDER[0])
     blob = cache.get(key)
     if blob is None:
         try:
@@ -129,7 +133,8 @@ def lower(fn, args: tuple, static: dict):
             blob = program.serialize()
         except (ValueError, NotImplementedError, ImportError):  # a custom call without a stable ABI; no flatbuffers
             return fn.lower(*args, **static)
-        cache.put(key, blob)
+        with contextlib.suppress(OSError):  # a full disk loses the entry, not the calibration
+            cache.put(key, blob)
     else:
         program = jax.export.deserialize(blob)
     return jax.jit(program.call).lower(*args)

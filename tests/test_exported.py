@@ -85,3 +85,25 @@ def test_code_the_fingerprint_cannot_see_is_not_cached():
 def test_every_built_in_robot_can_be_fingerprinted(name):
     """A built-in robot that could not be fingerprinted would silently never be kept."""
     assert exported.fingerprint(_solve_jit, ARGS, _static(jc.robots.get(name))) is not None
+
+
+def test_a_folder_that_cannot_be_written_keeps_nothing_and_fails_nothing(tmp_path):
+    """A cache folder whose exported/ cannot be made (a file in the way), or a write that fails (full disk):
+    the program is lowered as without a cache."""
+    from jaxcal.fit import core
+
+    blocked = tmp_path / "blocked"
+    blocked.write_text("a file, not a folder")
+    before = exported._FOLDER[0]
+    x0, args = np.zeros(2), {"v": np.ones(3)}
+    f = jax.jit(lambda x, a, limit: x * a["v"].sum() + limit)
+    try:
+        exported.use_folder(blocked)
+        assert float(exported.lower(f, (x0, args, core.step_limit(0)), {}).compile()(x0, args, core.step_limit(0))[0]) == 0.0
+        exported.use_folder(tmp_path / "full")
+        full = exported._cache_in(tmp_path / "full" / "exported")
+        full.put = lambda key, value: (_ for _ in ()).throw(OSError(28, "No space left on device"))
+        assert exported.lower(f, (x0 + 1, args, core.step_limit(0)), {}).compile()(x0 + 1, args, core.step_limit(0))[0] == 3.0
+        assert not list((tmp_path / "full" / "exported").iterdir())
+    finally:
+        exported._FOLDER[0] = before
