@@ -2,7 +2,7 @@
 URDF, in one process: the TALOS left arm (base_link -> gripper_left_base_link, 9 revolute joints, the real URDF
 of shared/data/real/talos).
 
-jaxcal: `jax.jit(jax.vmap(...))` over N configurations (one call). pinocchio (optional, `pip install pin`): its
+jaxcal: `jax.jit(jax.vmap(...))` over N configurations (one call; the Jacobian by `jax.jacrev`). pinocchio (optional, `pip install pin`): its
 C++ `framesForwardKinematics` / `computeFrameJacobian` called once per configuration from a Python loop (it has
 no batched call), on the model reduced to the chain's joints (`buildReducedModel`, the others locked at 0).
 Both must agree (positions to 1e-12 m, Jacobians to 1e-12) before a time is reported. Compile time apart,
@@ -48,7 +48,8 @@ def main(n: int = 10_000) -> list[dict]:
     qj = jnp.asarray(q)
     position = lambda a, qi: forward_open(rb, a, qi)[1]  # noqa: E731
     programs = {"FK": jax.jit(jax.vmap(position, (None, 0))),
-                "position Jacobian w.r.t. the joints": jax.jit(jax.vmap(jax.jacfwd(position, 1), (None, 0)))}
+                # reverse mode: 3 outputs, 9 inputs (jax.jacfwd took 134 ms against 39 ms at N = 1e4)
+                "position Jacobian w.r.t. the joints": jax.jit(jax.vmap(jax.jacrev(position, 1), (None, 0)))}
     try:
         import pinocchio as pin
 
