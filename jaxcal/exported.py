@@ -11,10 +11,11 @@ A stale program would give a wrong answer silently, so the fingerprint (SHA-256)
 jaxcal's source (every .py file of the package), the jax and jaxlib versions, the backend, the jax
 settings that change lowering (x64, matmul precision, promotion rules), the function's name, its static
 arguments by their pickled content (the robot, device and settings: their arrays, names and structure)
-and the shapes and dtypes of its array arguments. Static arguments
-whose pickle refers to code outside jaxcal, jax, numpy and the standard library (a user's device class
-or function, whose code the fingerprint cannot see), or that cannot be pickled, are not cached: those
-programs are traced every time, as without a cache. So is a program `jax.export` cannot serialize.
+and the shapes and dtypes of its array arguments. Static arguments whose pickle refers to code outside
+jaxcal, jax, numpy and the standard library (a user's device class or function, whose code the
+fingerprint cannot see), or that cannot be pickled, are not cached: those programs are traced every
+time, as without a cache. So is a program `jax.export` cannot serialize, and an entry that cannot be
+read back (a folder shared with an installation without flatbuffers) is traced again.
 """
 
 from __future__ import annotations
@@ -127,7 +128,11 @@ def lower(fn, args: tuple, static: dict):
     if cache is None:
         return fn.lower(*args, **static)
     blob = cache.get(key)
-    if blob is None:
+    program = _read(blob)
+    if program is None:
+        if blob is not None:  # an entry that cannot be read back: replaced by this one
+            with contextlib.suppress(OSError):
+                cache.entry(key).unlink()
         try:
             program = jax.export.export(fn)(*args, **static)
             blob = program.serialize()
@@ -135,6 +140,14 @@ def lower(fn, args: tuple, static: dict):
             return fn.lower(*args, **static)
         with contextlib.suppress(OSError):  # a full disk loses the entry, not the calibration
             cache.put(key, blob)
-    else:
-        program = jax.export.deserialize(blob)
     return jax.jit(program.call).lower(*args)
+
+
+def _read(blob: bytes | None):
+    """The exported program of a cache entry, or None (no entry, or one this installation cannot read)."""
+    if blob is None:
+        return None
+    try:
+        return jax.export.deserialize(blob)
+    except Exception:  # flatbuffers missing, or bytes that are no program (struct.error, AttributeError, ...): a miss
+        return None

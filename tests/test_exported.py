@@ -88,8 +88,8 @@ def test_every_built_in_robot_can_be_fingerprinted(name):
 
 
 def test_a_folder_that_cannot_be_written_keeps_nothing_and_fails_nothing(tmp_path):
-    """A cache folder whose exported/ cannot be made (a file in the way), or a write that fails (full disk):
-    the program is lowered as without a cache."""
+    """A cache folder whose exported/ cannot be made (a file in the way), a write that fails (full disk), an
+    entry that is no program: the program is lowered as without a cache."""
     from jaxcal.fit import core
 
     blocked = tmp_path / "blocked"
@@ -105,5 +105,11 @@ def test_a_folder_that_cannot_be_written_keeps_nothing_and_fails_nothing(tmp_pat
         full.put = lambda key, value: (_ for _ in ()).throw(OSError(28, "No space left on device"))
         assert exported.lower(f, (x0 + 1, args, core.step_limit(0)), {}).compile()(x0 + 1, args, core.step_limit(0))[0] == 3.0
         assert not list((tmp_path / "full" / "exported").iterdir())
+        exported.use_folder(tmp_path / "odd")  # an entry that is no program: traced again, and replaced
+        odd = exported._cache_in(tmp_path / "odd" / "exported")
+        key = exported.fingerprint(f, (x0, args, core.step_limit(0)), {})
+        odd.put(key, b"not a program")
+        assert exported.lower(f, (x0, args, core.step_limit(0)), {}).compile()(x0, args, core.step_limit(0))[0] == 0.0
+        assert jax.export.deserialize(odd.get(key)).call(x0, args, core.step_limit(0))[0] == 0.0
     finally:
         exported._FOLDER[0] = before
