@@ -1,12 +1,12 @@
 """Forward kinematics and the tool's position Jacobian (with respect to the joints) against pinocchio, on one
 URDF, in one process: the TALOS left arm (base_link -> gripper_left_base_link, 9 revolute joints, the real URDF
-of shared/data/real/talos).
+packaged with jaxcal's real datasets).
 
-jaxcal: `jax.jit(jax.vmap(...))` over N configurations (one call; the Jacobian by `jax.jacrev`). pinocchio (optional, `pip install pin`): its
-C++ `framesForwardKinematics` / `computeFrameJacobian` called once per configuration from a Python loop (it has
-no batched call), on the model reduced to the chain's joints (`buildReducedModel`, the others locked at 0).
-Both must agree (positions to 1e-12 m, Jacobians to 1e-12) before a time is reported. Compile time apart,
-medians. Run: python benchmarks/pinocchio_fk.py [--n 10000]
+jaxcal: `jax.jit(jax.vmap(...))` over N configurations (one call; the Jacobian by `jax.jacrev`). pinocchio
+(optional, `pip install pin`): its C++ `framesForwardKinematics` / `computeFrameJacobian` called once per
+configuration from a Python loop (it has no batched call), on the model reduced to the chain's joints
+(`buildReducedModel`, the others locked at 0). Both must agree (positions to 1e-12 m, Jacobians to 1e-12)
+before a time is reported. Compile time apart, medians. Run: python benchmarks/pinocchio_fk.py [--n 10000]
 """
 
 from __future__ import annotations
@@ -22,10 +22,11 @@ from _common import median_time
 
 import jaxcal as jc
 from jaxcal.kin.model import forward_open
+from jaxcal.realdata import DATA_DIR, REAL_DATASETS
 from jaxcal.robots.urdf import load_urdf
 
-TALOS = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "real", "talos", "talos.urdf")
-BASE, TIP = "base_link", "gripper_left_base_link"
+TALOS = os.path.join(DATA_DIR, REAL_DATASETS["talos"]["folder"], REAL_DATASETS["talos"]["urdf"])
+BASE, TIP = "base_link", REAL_DATASETS["talos"]["tip"]
 
 
 def pinocchio_chain(path: str, joint_names):
@@ -41,7 +42,7 @@ def pinocchio_chain(path: str, joint_names):
 
 def main(n: int = 10_000) -> list[dict]:
     """One dict per quantity (FK, position Jacobian): compile s, jaxcal s, pinocchio s (NaN without pinocchio)."""
-    path = os.path.abspath(TALOS)
+    path = TALOS
     rb = load_urdf(path, base=BASE, tip=TIP)
     a = jnp.asarray(rb.nominal_np)
     q = jc.random_configurations(rb, n, seed=1)
