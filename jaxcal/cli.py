@@ -902,8 +902,9 @@ def run() -> None:
 
     jax.effects_barrier()
     logging.shutdown()
-    sys.stdout.flush()
-    sys.stderr.flush()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):  # a reader that has gone (`jaxcal ... | head`), a closed stream
+            stream.flush()
     os._exit(code)
 
 
