@@ -188,3 +188,10 @@ def test_the_console_command_flushes_its_output_and_keeps_the_exit_code(tmp_path
     assert len(jc.Dataset.from_csv(str(tmp_path / "s.csv"))) == 5
     bad = console("--no-cache", "calibrate", "nothere.urdf", "s.csv")
     assert bad.returncode == 2 and bad.stderr.strip().startswith("error: nothere.urdf: no such robot file")
+    # a profiler's results are written at exit: under one, the command exits the usual way (atexit handlers run)
+    code = ("import atexit, sys; from jaxcal.cli import run; atexit.register(print, 'exit handlers ran'); "
+            "sys.argv = ['jaxcal', '--no-cache', 'calibrate', 'nothere.urdf', 's.csv']; {}run()")
+    for profiled in (False, True):
+        out = subprocess.run([sys.executable, "-c", code.format("sys.setprofile(lambda *a: None); " if profiled else "")],
+                             capture_output=True, text=True, cwd=tmp_path, timeout=300)
+        assert out.returncode == 2 and ("exit handlers ran" in out.stdout) == profiled
