@@ -30,6 +30,7 @@ import types
 
 import jax
 import jaxlib
+import numpy as np
 
 from jaxcal.xla_cache import AtomicFileCache
 
@@ -90,12 +91,12 @@ def _content(obj) -> bytes | None:
     return buf.getvalue()
 
 
-def _shapes(args) -> str:
-    """The array arguments' tree structure, shapes, dtypes and weak typing, as text."""
-    leaves, treedef = jax.tree_util.tree_flatten(args)
-    specs = [(tuple(getattr(v, "shape", ())), str(getattr(v, "dtype", type(v).__name__)),
-              bool(getattr(v, "weak_type", False))) for v in leaves]
-    return f"{treedef}|{specs}"
+def signature(tree) -> tuple:
+    """What selects a compiled program among arguments: the tree's structure and each leaf's shape, dtype and
+    weak typing (numpy and JAX arrays of one shape and dtype alike)."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    return (treedef, *((np.shape(v), str(getattr(v, "dtype", np.result_type(v))), bool(getattr(v, "weak_type", False)))
+                       for v in leaves))
 
 
 def _lowering_config() -> str:
@@ -110,7 +111,7 @@ def fingerprint(fn, args: tuple, static: dict) -> str | None:
         return None
     h = hashlib.sha256()
     for part in (source_digest(), jax.__version__, jaxlib.__version__, jax.default_backend(), _lowering_config(),
-                 f"{fn.__module__}.{fn.__qualname__}", _shapes(args)):
+                 f"{fn.__module__}.{fn.__qualname__}", repr(signature(args))):
         h.update(part.encode())
         h.update(b"\0")
     h.update(content)

@@ -362,14 +362,6 @@ _COMPILED_MAX = 64  # compiled solvers kept per process (least recently used fir
 compiled.register(_COMPILED.clear)
 
 
-def signature(tree) -> tuple:
-    """What selects a compiled program among arguments: the tree's structure and each leaf's shape, dtype and
-    weak typing (numpy and JAX arrays of one shape and dtype alike)."""
-    leaves, treedef = jax.tree_util.tree_flatten(tree)
-    return (treedef, *((np.shape(v), str(getattr(v, "dtype", np.result_type(v))), bool(getattr(v, "weak_type", False)))
-                       for v in leaves))
-
-
 def compiled_model_solver(x0, args, model, settings: Settings, batched=()):
     """(executable, seconds spent compiling: 0 when reused), called as exe(x0, args, limit) with limit the cap
     on iterations (`step_limit`). One compile per residual model, settings, argument shapes and placement (arrays
@@ -377,7 +369,7 @@ def compiled_model_solver(x0, args, model, settings: Settings, batched=()):
     identity, so the cache is bounded). With a compilation-cache folder in use, the lowered program is kept
     there too (`jaxcal.exported`): a later process skips tracing it."""
     placed = [str(v.sharding) for v in jax.tree_util.tree_leaves((x0, args)) if isinstance(v, jax.Array) and v.committed]
-    key = (model, settings, tuple(batched), signature((x0, args)), tuple(sorted(set(placed))))
+    key = (model, settings, tuple(batched), exported.signature((x0, args)), tuple(sorted(set(placed))))
     if key in _COMPILED:
         _COMPILED.move_to_end(key)
         return _COMPILED[key], 0.0
@@ -401,7 +393,7 @@ def evaluator(problem: "Problem", args, settings: Settings | None = None):
     x0 = np.zeros(len(problem.names))
     if settings is not None and isinstance(make_solver(settings.solver, settings.rtol, settings.atol), LevenbergMarquardt):
         return compiled_model_solver(x0, args, problem.model, settings)
-    shapes = signature((x0, args))
+    shapes = exported.signature((x0, args))
     for key in reversed(_COMPILED):
         model, done, batched, done_shapes, placed = key
         if (model == problem.model and not batched and done_shapes == shapes and not placed
