@@ -292,7 +292,8 @@ def test_jacobian_from_the_solver_program_is_jacfwd_and_predicted_is_readings(na
     """`Problem.jacobian` (the solver's executable run for 0 iterations) equals jax.jacfwd of the weighted residuals
     (float64, relative 1e-12; measured 5.2e-16 on the Stanford arm, 0 on the four-bar), the run leaves the point
     where it is, and `core.predicted` (a closed mechanism: one closure solve, then the open tree) equals the
-    differentiable `core.readings` to 1e-12 m. A solve of a third of the entries returns the Jacobian of every
+    differentiable `core.readings` to 1e-12 m, also for other arrays of the same shapes (its results are kept by
+    content). A solve of a third of the entries returns the Jacobian of every
     column at its end (`Solution.J`, which `calibrate` uses instead of running the program again): equal to
     `Problem.jacobian` there (relative 1e-12)."""
     import jax
@@ -303,6 +304,15 @@ def test_jacobian_from_the_solver_program_is_jacfwd_and_predicted_is_readings(na
     q = jc.random_configurations(rb, 12, seed=3)
     y = np.asarray(core.readings(rb, dev, a, q)) + 1e-4 * np.sin(np.arange(36.0)).reshape(12, 3)  # a non-zero residual
     np.testing.assert_allclose(core.predicted(rb, dev, a, q), core.readings(rb, dev, a, q), rtol=0, atol=1e-12)
+    # the readings kept by content (`core.predicted`): new arrays of other values are evaluated, not served stale
+    q_moved, a_moved = q.copy(), a.copy()
+    q_moved[5, 0] += 0.1
+    a_moved[0] += 1e-3
+    for a_i, q_i in ((a, q_moved), (a_moved, q)):
+        kept = core.predicted(rb, dev, a_i, q_i)
+        np.testing.assert_allclose(kept, core.readings(rb, dev, a_i, q_i), rtol=0, atol=1e-12)
+        assert not kept.flags.writeable
+    assert not np.allclose(core.predicted(rb, dev, a, q_moved)[5], core.predicted(rb, dev, a, q)[5])
     w = np.full((12, 3), 1e3)
     problem = core.Problem(rb, dev, q, y, w, np.ones(len(a), bool), a, np.full(len(a), -np.inf), np.full(len(a), np.inf))
     J = problem.jacobian(a)

@@ -3,8 +3,10 @@ result; the fingerprint follows the content of what the trace reads, and code it
 
 import copy
 import dataclasses
+from typing import NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -113,3 +115,55 @@ def test_a_folder_that_cannot_be_written_keeps_nothing_and_fails_nothing(tmp_pat
         assert jax.export.deserialize(odd.get(key)).call(x0, args, core.step_limit(0))[0] == 0.0
     finally:
         exported._FOLDER[0] = before
+
+
+class Pair(NamedTuple):
+    scaled: jax.Array
+    total: jax.Array
+
+
+jax.export.register_namedtuple_serialization(Pair, serialized_name="tests.test_exported.Pair")
+
+
+@exported.jit(static_argnums=(0,))
+def _kept(settings: Settings, x):
+    return Pair(settings.max_steps * x, jnp.sum(x))
+
+
+def test_a_kept_function_is_read_back_for_equal_static_arguments_and_plain_under_a_trace(folder, monkeypatch):
+    """`exported.jit`: the first call with arrays keeps its program; a call after `compiled.clear` with an equal (a
+    new) static argument (a jaxcal object: one from outside jaxcal is not kept) reads it back instead of exporting
+    again; inside another program it is the plain jit (nothing kept for the traced call); results as `jax.jit`'s,
+    NamedTuple output included."""
+    x = jnp.arange(3.0)
+    first = _kept(Settings(max_steps=2), x)
+    kept = sorted(folder.iterdir())
+    assert len(kept) == 1 and isinstance(first, Pair)
+    compiled.clear()
+    monkeypatch.setattr(jax.export, "export", lambda *a, **k: pytest.fail("exported again instead of read back"))
+    again = _kept(Settings(max_steps=2), x)
+    traced = jax.jit(lambda v: _kept(Settings(max_steps=3), v))(x)
+    assert sorted(folder.iterdir()) == kept
+    plain = _kept.jitted(Settings(max_steps=2), x)
+    for out in (first, again):
+        np.testing.assert_array_equal(out.scaled, plain.scaled)
+        assert float(out.total) == 3.0
+    np.testing.assert_array_equal(traced.scaled, 3.0 * x)
+
+
+def test_closure_programs_kept_give_the_plain_results(folder):
+    """The closure's own programs (`jaxcal.closure.core._solve_batched`, `_tool_of_solution`) through the folder:
+    the same tool poses, closure status and free joints, bit for bit, as without a folder."""
+    rb = jc.robots.get("fourbar2d")
+    a = jnp.asarray(jc.perturb(rb, 1e-3, seed=1))
+    q = jnp.asarray(jc.random_configurations(rb, 12, seed=2))
+    kept_pose, kept_status = jc.closure.forward_with_status(rb, a, q)
+    kept_solution = jc.closure.solve(rb, a, q)
+    assert len(list(folder.iterdir())) == 2
+    exported.use_folder(None)
+    plain_pose, plain_status = jc.closure.forward_with_status(rb, a, q)
+    plain_solution = jc.closure.solve(rb, a, q)
+    for kept, plain in ((kept_pose, plain_pose), (kept_solution, plain_solution)):
+        for u, v in zip(kept, plain):
+            np.testing.assert_array_equal(np.asarray(u), np.asarray(v))
+    np.testing.assert_array_equal(np.asarray(kept_status), np.asarray(plain_status))

@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from jaxcal import exported
 from jaxcal.closure.track import CLOSED, OTHER_MODE, UNCLOSED, Tracked, corrector, damped_newton, track
 from jaxcal.kin.model import Robot, frames_single, joint_variables, map_leading_axes
 from jaxcal.kin.pose import Pose
@@ -115,6 +116,9 @@ class ClosureSolution(NamedTuple):
     ok: jnp.ndarray
     steps: jnp.ndarray
     status: jnp.ndarray
+
+
+jax.export.register_namedtuple_serialization(ClosureSolution, serialized_name="jaxcal.closure.ClosureSolution")
 
 
 def checked_closure(robot: Robot) -> Closure:
@@ -334,7 +338,7 @@ def _start(robot: Robot, start):
     return jnp.asarray(robot.closure.start, dtype=jnp.float64), "home"
 
 
-@functools.partial(jax.jit, static_argnums=(0, 4))
+@exported.jit(static_argnums=(0, 4))
 def _solve_batched(robot: Robot, a, q, start, mode) -> ClosureSolution:
     def one(qi):
         return _solve_single(robot, a, joint_variables(robot, a, qi), start, mode)
@@ -389,7 +393,7 @@ def forward_closed(robot: Robot, a, q, start=None) -> Pose:
     return _forward_batched(robot, a, q, *_start(robot, start))
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@exported.jit(static_argnums=(0,))
 def _tool_of_solution(robot: Robot, a, q, theta_free, ok) -> Pose:
     def one(qi, th, k):
         f = tree_frames(robot, a, joint_variables(robot, a, qi), th)

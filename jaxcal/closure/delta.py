@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal import exported
 from jaxcal.closure.core import Closure, ClosureSolution, euler_parameters, failed_pose, forward_closed, tree_frames
 from jaxcal.closure.core import solve as solve_generic
 from jaxcal.closure.track import CLOSED, OTHER_MODE, UNCLOSED, Tracked, track
@@ -455,7 +456,7 @@ def _unflat(out, lead):
     return jax.tree_util.tree_map(lambda v: v.reshape(lead + v.shape[1:]), out)
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@exported.jit(static_argnums=(0,))  # kept across processes (tracing it took 1.8-2.4 s)
 def solve(robot, a, q) -> ClosureSolution:
     """Closure of the Table 4.6 Delta for actuator settings q (..., 3): free joints in the order
     of `FREE` (15,), closure residual norm, ok flag, Newton iterations (fast path + continuation) and
@@ -593,7 +594,7 @@ PAIRS = tuple((rod[2], c, "position") for c, rod in zip(CLOSURES, RODS))
 FREE = ROD1 + tuple(b for rod in RODS for b in rod[:2])
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@exported.jit(static_argnums=(0,))
 def _home_closure(robot, a, q):
     """(theta_free in the order of FREE, ok) of the nominal model at one setting by the fast path alone:
     the nominal direct solution is exact there, so Newton closes at once and the continuation of `solve`

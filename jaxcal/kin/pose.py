@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 
 
@@ -39,6 +40,9 @@ class Pose(NamedTuple):
     def from_matrix(T) -> "Pose":
         T = jnp.asarray(T)
         return Pose(T[..., :3, :3], T[..., :3, 3])
+
+
+jax.export.register_namedtuple_serialization(Pose, serialized_name="jaxcal.kin.Pose")  # outputs of kept programs
 
 
 def translation(x, y, z) -> Pose:
