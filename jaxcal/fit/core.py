@@ -30,9 +30,11 @@ kept only where it lowers the cost, then the frames-only fit of every free devic
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import functools
 import hashlib
+import threading
 import time
 import warnings
 
@@ -769,6 +771,20 @@ def start(problem: Problem, settings: Settings) -> tuple[np.ndarray, Solution | 
     return sol.x, sol, registered
 
 
+def residuals_in_background(problem: Problem) -> threading.Thread:
+    """A started thread that evaluates the residuals at the prior (`Problem.residuals`, whose readings
+    `predicted` keeps), the start's first evaluation: their programs compile while the solver's does (XLA
+    compiles outside the GIL). An error there is left to the start, which evaluates the same point again."""
+
+    def evaluate():
+        with contextlib.suppress(Exception):
+            problem.residuals(problem.a_ref)
+
+    thread = threading.Thread(target=evaluate, name="jaxcal-prior-residuals", daemon=True)
+    thread.start()
+    return thread
+
+
 # -- the whole calibration ------------------------------------------------------------------------
 @dataclasses.dataclass(frozen=True)
 class Calibration:
@@ -884,7 +900,9 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
     else:
         say("start: device frame registered, then fitted with the nominal robot")
         P = len(problem.names)  # the solver's program, compiled first: `Problem.jacobian` runs it too
+        prior = residuals_in_background(problem)
         _, compile_s = evaluator(problem, problem.solver_arrays(problem.a_ref, np.ones(P), problem.w, 0.0, np.ones(P)), settings)
+        prior.join()
         x_frames, frames_sol, registered = start(problem, settings)
         J0 = problem.jacobian(x_frames) if frames_sol is None or frames_sol.J is None else frames_sol.J
         frames_ok = True if frames_sol is None else frames_sol.converged
