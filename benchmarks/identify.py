@@ -77,7 +77,8 @@ def run_case(device_kind, noise, seed=1, solver="lm"):
     a_sp = a_start.copy()
     a_sp[est_idx] = sol.x
     rms_sp = np.sqrt(np.mean(np.sum((res(sol.x) * 1e-3).reshape(200, -1)[:, :3] ** 2, 1))) * 1e3
-    return dict(device=device_kind, solver=solver, compile_s=first.timings["compile_s"], t_jc=t_jc, t_solve=t_solve, t_scipy=t_sp,
+    return dict(device=device_kind, solver=solver, compile_s=first.timings["compile_s"], first_s=first.timings["total_s"],
+                t_jc=t_jc, t_solve=t_solve, t_scipy=t_sp,
                 rms_jc=fit.rms_after, rms_scipy=rms_sp, iters_jc=fit.iterations, nfev_scipy=sol.nfev,
                 heldout_jc=fit.rms_on(test), n_est=len(est_idx))
 

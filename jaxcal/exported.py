@@ -114,7 +114,7 @@ def placements(tree) -> tuple[str, ...]:
                          and v.devices() != {default}}))
 
 
-def _lowering_config() -> str:
+def lowering_config() -> str:
     """The jax settings that change how a traced program is lowered."""
     return repr([getattr(jax.config, name) for name in LOWERING_CONFIG])
 
@@ -125,7 +125,7 @@ def fingerprint(fn, args: tuple, static: dict) -> str | None:
     if content is None:
         return None
     h = hashlib.sha256()
-    for part in (source_digest(), jax.__version__, jaxlib.__version__, jax.default_backend(), _lowering_config(),
+    for part in (source_digest(), jax.__version__, jaxlib.__version__, jax.default_backend(), lowering_config(),
                  f"{fn.__module__}.{fn.__qualname__}", repr(signature(args))):
         h.update(part.encode())
         h.update(b"\0")
@@ -180,10 +180,10 @@ class KeptJit:
     with a folder in use, a call with arrays (not tracers) runs an executable compiled from the program read
     back from the folder, or exported and kept there at its first call. Equal static arguments (by content, the
     fingerprint) share one program across processes; in a process, executables are looked up by the static
-    arguments themselves and the argument shapes, as jax.jit does (at most MAX_KEPT per function). Under a trace
-    (called inside another program), without a folder, or with arrays committed to a device, it is the plain jit.
-    Outputs that are NamedTuples must be registered (`jax.export.register_namedtuple_serialization`), else
-    the program is not kept."""
+    arguments themselves, the argument shapes and the jax settings that change lowering, as jax.jit does (at
+    most MAX_KEPT per function). Under a trace (called inside another program), without a folder, or with
+    arrays committed to a device other than the default one, it is the plain jit. Outputs that are NamedTuples
+    must be registered (`jax.export.register_namedtuple_serialization`), else the program is not kept."""
 
     MAX_KEPT = 32
 
@@ -201,7 +201,7 @@ class KeptJit:
         dynamic = tuple(a for i, a in enumerate(args) if i not in self.static_argnums)
         if placements(dynamic) or any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(dynamic)):
             return self.jitted(*args)
-        key = (static, signature(dynamic))
+        key = (static, signature(dynamic), lowering_config())
         exe = self._executables.get(key)
         if exe is None:
             exe = self._executables[key] = self._compile(args, static, dynamic)

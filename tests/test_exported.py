@@ -133,8 +133,9 @@ def _kept(settings: Settings, x):
 def test_a_kept_function_is_read_back_for_equal_static_arguments_and_plain_under_a_trace(folder, monkeypatch):
     """`exported.jit`: the first call with arrays keeps its program; a call after `compiled.clear` with an equal (a
     new) static argument (a jaxcal object: one from outside jaxcal is not kept) reads it back instead of exporting
-    again; inside another program it is the plain jit (nothing kept for the traced call); results as `jax.jit`'s,
-    NamedTuple output included."""
+    again; inside another program it is the plain jit (nothing kept for the traced call); arrays committed to the
+    default device (a compiled program's outputs) use the same executable, a lowering setting another one; results
+    as `jax.jit`'s, NamedTuple output included."""
     x = jnp.arange(3.0)
     first = _kept(Settings(max_steps=2), x)
     kept = sorted(folder.iterdir())
@@ -144,6 +145,14 @@ def test_a_kept_function_is_read_back_for_equal_static_arguments_and_plain_under
     again = _kept(Settings(max_steps=2), x)
     traced = jax.jit(lambda v: _kept(Settings(max_steps=3), v))(x)
     assert sorted(folder.iterdir()) == kept
+    monkeypatch.undo()
+    on_default = jax.device_put(x, jax.devices()[0])  # committed, as a compiled program's outputs are
+    assert on_default.committed and exported.placements((on_default, x)) == ()
+    np.testing.assert_array_equal(_kept(Settings(max_steps=2), on_default).scaled, again.scaled)
+    assert len(_kept._executables) == 1  # the same executable
+    with jax.numpy_rank_promotion("raise"):  # a setting that changes lowering: another program
+        _kept(Settings(max_steps=2), x)
+    assert len(_kept._executables) == 2 and len(list(folder.iterdir())) == 2
     plain = _kept.jitted(Settings(max_steps=2), x)
     for out in (first, again):
         np.testing.assert_array_equal(out.scaled, plain.scaled)

@@ -391,7 +391,7 @@ def compiled_model_solver(x0, args, model, settings: Settings, batched=()):
     identity, so the cache is bounded). With a compilation-cache folder in use, the lowered program is kept
     there too (`jaxcal.exported`): a later process skips tracing it."""
     placed = exported.placements((x0, args))
-    key = (model, settings, tuple(batched), exported.signature((x0, args)), placed)
+    key = (model, settings, tuple(batched), exported.signature((x0, args)), placed, exported.lowering_config())
     if key in _COMPILED:
         _COMPILED.move_to_end(key)
         return _COMPILED[key], 0.0
@@ -415,10 +415,10 @@ def evaluator(problem: "Problem", args, settings: Settings | None = None):
     x0 = np.zeros(len(problem.names))
     if settings is not None and isinstance(make_solver(settings.solver, settings.rtol, settings.atol), LevenbergMarquardt):
         return compiled_model_solver(x0, args, problem.model, settings)
-    shapes = exported.signature((x0, args))
+    shapes, config = exported.signature((x0, args)), exported.lowering_config()
     for key in reversed(_COMPILED):
-        model, done, batched, done_shapes, placed = key
-        if (model == problem.model and not batched and done_shapes == shapes and not placed
+        model, done, batched, done_shapes, placed, done_config = key
+        if (model == problem.model and not batched and done_shapes == shapes and not placed and done_config == config
                 and isinstance(make_solver(done.solver, done.rtol, done.atol), LevenbergMarquardt)):
             return _COMPILED[key], 0.0
     return compiled_model_solver(x0, args, problem.model, Settings())
