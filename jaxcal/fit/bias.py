@@ -43,6 +43,23 @@ PRIOR_PATH = (10.0, 1.0, 1e-1, 1e-2, 1e-3)
 FEW_READINGS = 2.0
 
 
+# identify's unbiased fit, when its estimate is clearly noise-dominated, is stopped after EARLY_STEPS iterations
+# (`clearly_noise_dominated`, `core.calibrate`'s early_stop): that fit only decides the rule (the bias path starts
+# again from the frames-only start), and a noise-dominated one crawls along its weak directions to converge (TALOS
+# left arm, 61 real positions: 122 of the call's 212 LM steps, weakest standard error 106-171 x the typical size at
+# every step from 5 on; Delta, 125 positions: 57 steps, 7.2-8.6 x). Clearly: above EARLY_MARGIN x NOISE_DOMINATED with
+# the residual variance that one Gauss-Newton step predicts at the optimum, so a well-determined fit that is still
+# far from its optimum (its residual not yet down to the noise) goes on.
+EARLY_STEPS = 20
+EARLY_MARGIN = 10.0
+
+
+def _weakest(Je_scaled, sigma2: float) -> float:
+    """Largest sqrt(diag(sigma^2 (Je^T Je)^+)) (Je: the estimated columns in typical-size units)."""
+    cov = sigma2 * np.linalg.pinv(Je_scaled.T @ Je_scaled)
+    return float(np.sqrt(np.max(np.maximum(np.diag(cov), 0.0))))
+
+
 def weakest_standard_error(cal: core.Calibration) -> float:
     """Largest linearised standard error of an estimated parameter, in units of its typical size: sigma^2
     (J^T J)^+ with sigma^2 = r^T r / (m - p) from the weighted residual at the solution (seed 004 eq 3.31-3.32)."""
@@ -52,9 +69,23 @@ def weakest_standard_error(cal: core.Calibration) -> float:
     p = cal.problem
     r = np.asarray(core.weighted_residuals(p.robot, p.device, cal.x, p.q, p.y, p.w))[p.used]
     sigma2 = float(np.sum(r**2)) / max(r.size - est.size, 1)
-    Je = cal.J[:, est] * core.x_scale(p.units)[est]
-    cov = sigma2 * np.linalg.pinv(Je.T @ Je)
-    return float(np.sqrt(np.max(np.maximum(np.diag(cov), 0.0))))
+    return _weakest(cal.J[:, est] * core.x_scale(p.units)[est], sigma2)
+
+
+def clearly_noise_dominated(problem: core.Problem, x, J, estimated) -> bool:
+    """Whether an unconverged fit at x (J: the weighted data Jacobian there) is noise-dominated by EARLY_MARGIN:
+    `weakest_standard_error` with sigma^2 from min over delta of |r + J_e delta|^2 (the cost the linearised fit
+    reaches; below the cost at x, so the test errs toward going on with the fit)."""
+    est = np.asarray(estimated, int)
+    if not est.size:
+        return False
+    r = np.asarray(problem.residuals(x))
+    readings = r[problem.used].size
+    Je = J[:, est] * core.x_scale(problem.units)[est]
+    r = r.reshape(-1)
+    delta = np.linalg.lstsq(Je, -r, rcond=None)[0]
+    sigma2 = float(np.sum((r + Je @ delta) ** 2)) / max(readings - est.size, 1)
+    return _weakest(Je, sigma2) > EARLY_MARGIN * NOISE_DOMINATED
 
 
 def few_readings(cal: core.Calibration) -> bool:
@@ -107,5 +138,6 @@ def choose_bias(problem: core.Problem, cal: core.Calibration, settings: core.Set
     return [float(m) for m in path[:k + 1]], scores
 
 
-__all__ = ["BIAS_FOLDS", "BIAS_PATH", "FEW_READINGS", "ILL_CONDITIONED_BIAS", "NOISE_DOMINATED", "PATIENCE", "PRIOR_PATH",
-           "choose_bias", "few_readings", "fold_index", "heldout_scores", "least_stage", "weakest_standard_error"]
+__all__ = ["BIAS_FOLDS", "BIAS_PATH", "EARLY_MARGIN", "EARLY_STEPS", "FEW_READINGS", "ILL_CONDITIONED_BIAS",
+           "NOISE_DOMINATED", "PATIENCE", "PRIOR_PATH", "choose_bias", "clearly_noise_dominated", "few_readings",
+           "fold_index", "heldout_scores", "least_stage", "weakest_standard_error"]

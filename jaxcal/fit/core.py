@@ -715,13 +715,15 @@ def solver_jacobian(problem: Problem, J_z, args) -> np.ndarray | None:
     return J_z[:w.size] / np.asarray(args["x_scale"]) * weight_scale
 
 
-def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, ref=None) -> Solution:
-    """Minimise the stacked residual over the `estimated` indices from x0, with bias mu toward ref (default x0)."""
+def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, ref=None, limit: int | None = None) -> Solution:
+    """Minimise the stacked residual over the `estimated` indices from x0, with bias mu toward ref (default x0);
+    limit: at most this many iterations (default settings.max_steps; the same compiled program)."""
     ref = x0 if ref is None else ref
     args = problem.args(estimated, mu, ref)
     x0 = np.asarray(x0, np.float64)
     exe, dt = compiled_model_solver(x0, args, problem.model, settings)
-    x, ok, steps, cost, history, _, J_z = exe(x0, args, step_limit(settings.max_steps))
+    cap = settings.max_steps if limit is None else min(limit, settings.max_steps)
+    x, ok, steps, cost, history, _, J_z = exe(x0, args, step_limit(cap))
     x = np.where(np.asarray(args["mask"]) > 0, np.asarray(x), np.asarray(ref))
     history = np.asarray(history)
     return Solution(x, bool(ok), int(steps), float(cost), dt, history[np.isfinite(history)], np.asarray(estimated, int),
@@ -796,7 +798,8 @@ class Calibration:
     set; registered: the device frame came from the rigid registration; history: the solver's cost at the start
     and after each step of every bias stage (the core's LM without multi-start; else empty); frames_fitted: the
     device parameters the start fitted (with the robot at its prior), some of which the main fit may hold
-    (`undetermined`) at those fitted values; polish: the final all-parameter stage (`polish`)."""
+    (`undetermined`) at those fitted values; polish: the final all-parameter stage (`polish`); stopped_early: the
+    unbiased fit was stopped unconverged by `calibrate`'s early_stop."""
 
     problem: Problem
     x: np.ndarray
@@ -816,6 +819,7 @@ class Calibration:
     J0: np.ndarray  # weighted Jacobian at x_frames (the base set's)
     frames_fitted: np.ndarray
     polish: dict  # the final all-parameter stage: tried, accepted, F ratio, costs (`polish`)
+    stopped_early: bool = False  # the unbiased fit was stopped by `early_stop` (x, J: where it stopped; no polish)
 
 
 def choose_estimated(problem: Problem, J, base: bool, base_tol: float | None):
@@ -887,11 +891,16 @@ def polish(problem: Problem, x, J, estimated, undetermined, settings: Settings) 
 
 def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool = True, bias=None, multistart: int = 0,
               seed: int = 0, base_tol: float | None = None, started: Calibration | None = None,
-              final_polish: bool = True, progress=None) -> Calibration:
+              final_polish: bool = True, progress=None, early_stop=None, early_steps: int = 0) -> Calibration:
     """The calibration path every client uses: start, base set at the start, bias stages (and multi-start), then
     the all-parameter polish (`polish`, with base and final_polish).
     started: an earlier calibration of the same problem and settings, whose start (and its Jacobian) is reused.
-    progress: called with a short text as each stage begins (a progress display: `jaxcal calibrate`)."""
+    progress: called with a short text as each stage begins (a progress display: `jaxcal calibrate`).
+    early_stop(problem, x, J, estimated) -> bool, with early_steps > 0, for an unbiased single-stage fit without
+    multi-start: the fit runs early_steps iterations first; converged by then, it goes on as without; else
+    early_stop is asked at that point, and True returns the calibration there (`stopped_early`, unconverged, no
+    polish), False solves again from the stage's start with the full step limit (the result is the one without
+    early_stop, at the cost of early_steps iterations)."""
     say = progress or (lambda text: None)
     t0 = time.perf_counter()
     if started is not None and started.problem is problem:
@@ -923,6 +932,16 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
             best = int(np.argmin(np.where(oks, costs, np.inf))) if oks.any() else int(np.argmin(costs))
             sol = Solution(np.where(np.asarray(args["mask"]) > 0, xs[best], x_frames), bool(oks[best]), int(steps[best]),
                            float(costs[best]), dt)
+        elif early_stop is not None and early_steps > 0 and bias_schedule(bias) == [0.0]:
+            sol = solve(problem, x, est, settings, mu, ref=x_frames, limit=early_steps)
+            if not sol.converged and sol.J is not None and early_stop(problem, sol.x, sol.J, est):
+                return Calibration(problem, sol.x, x_frames, est, undetermined, no_effect, regrouped, sol.J, False,
+                                   frames_ok, sol.steps, registered, compile_s + sol.compile_s,
+                                   time.perf_counter() - t0 - compile_s - sol.compile_s, sol.history, J0, frames_fitted,
+                                   {"tried": False}, stopped_early=True)
+            if not sol.converged:
+                compile_s += sol.compile_s
+                sol = solve(problem, x, est, settings, mu, ref=x_frames)
         else:
             sol = solve(problem, x, est, settings, mu, ref=x_frames)
         histories.append(sol.history)

@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal import compiled
+from jaxcal.fit import bias as bias_rules
 from jaxcal.fit import core, lm
 from jaxcal.fit.bias import (
     ILL_CONDITIONED_BIAS,
@@ -267,15 +268,18 @@ def calibrate_with_default_bias(problem: core.Problem, settings: core.Settings, 
                                 multistart: int = 0, seed: int = 0, base_tol: float | None = None,
                                 progress=None) -> tuple[core.Calibration, dict]:
     """`core.calibrate` with `identify`'s bias rule (its docstring, `bias`): unbiased first; when that estimate is
-    noise-dominated, again from the same start with ILL_CONDITIONED_BIAS (an open chain), with the end of
-    BIAS_PATH chosen by k-fold held-out error (a closed mechanism), or, for an open chain with few readings,
+    noise-dominated (decided after `fit.bias.EARLY_STEPS` iterations of the unbiased fit when it is clearly so:
+    `fit.bias.clearly_noise_dominated`), again from the same start with ILL_CONDITIONED_BIAS (an open chain), with
+    the end of BIAS_PATH chosen by k-fold held-out error (a closed mechanism), or, for an open chain with few readings,
     every free parameter under PRIOR_PATH stopped by k-fold held-out error. Every caller that stands for
     `identify` on some samples (the gap diagnosis' fold baselines) uses this, so its result is identify's.
     Returns (calibration, record of the rule: bias_schedule, bias_every_free, weakest_standard_error, ...)."""
+    rule = bias is None or (isinstance(bias, str) and bias == "heldout")
     cal = core.calibrate(problem, settings, base=base, bias=None if isinstance(bias, str) else bias, multistart=multistart,
-                         seed=seed, base_tol=base_tol, progress=progress)
-    bias_info = {}
-    if bias is None or (isinstance(bias, str) and bias == "heldout"):
+                         seed=seed, base_tol=base_tol, progress=progress,
+                         early_stop=bias_rules.clearly_noise_dominated if rule else None, early_steps=bias_rules.EARLY_STEPS)
+    bias_info = {"unbiased_stopped_after": cal.iterations} if cal.stopped_early else {}
+    if rule:
         weakest = weakest_standard_error(cal)
         if weakest > NOISE_DOMINATED:  # noise-dominated estimate: stop the bias schedule above 0
             every_free = bias is None and base and problem.robot.closure is None and few_readings(cal)
