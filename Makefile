@@ -23,11 +23,12 @@ demo: $(STAMP)
 # reported as "worker crashed", the worker is replaced (at most 4 times), and pytest-rerunfailures
 # puts the test back in the queue once: `--reruns 1` counts the crash, while `--only-rerun` and
 # `--rerun-except` only ever filter ordinary failures; `--rerun-except .` matches every one, so an
-# ordinary failure is never rerun. (--dist loadfile cannot put a crashed test back.)
+# ordinary failure is never rerun. (--dist loadfile cannot put a crashed test back.) --durations: the 20 slowest tests
+# are listed at the end (issue 18: where the suite's time goes).
 # tests/conftest.py gives the runs of this checkout one cache of compiled code (.cache/test-xla), shared by both
 # workers and kept for the next run (a fresh clone starts empty),
-# and compiles with XLA:CPU's elemental emitter, which compiles faster (docs/benchmarks.md).
-PYTEST_RUN := $(BIN)/python -m pytest -n 2 --dist worksteal --max-worker-restart 4 --reruns 1 --rerun-except .
+# and compiles with XLA:CPU's elemental emitter at LLVM level 0, which compiles faster (docs/benchmarks.md).
+PYTEST_RUN := $(BIN)/python -m pytest -n 2 --dist worksteal --max-worker-restart 4 --reruns 1 --rerun-except . --durations=20
 
 test: $(STAMP)
 	$(PYTEST_RUN)

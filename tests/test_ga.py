@@ -28,6 +28,16 @@ def test_rotation_spectral_distance_matches_svd(rng):
     assert np.max(np.abs(rotation_spectral_distance(Ra, Rb) - svd)) < 1e-12
 
 
+def test_rotation_spectral_distance_is_accurate_for_small_rotations():
+    """At the GA's fitness limit the rotation errors are a few urad: 2 sin(theta/2) to ~1e-10 relative (the trace
+    form sqrt(3 - tr) kept ~1e-5 there: 3 - tr ~ theta^2 ~ 1e-11 is the difference of two numbers near 3)."""
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    for theta in (1e-3, 5e-6, 1e-7):
+        Ra, Rb = exp_so3(jnp.asarray(theta * axis)), exp_so3(jnp.asarray(np.array([0.2, 0.1, -0.4])))
+        got = float(rotation_spectral_distance(Rb @ Ra, Rb))
+        assert got == pytest.approx(2.0 * np.sin(theta / 2.0), rel=1e-8), theta
+
+
 def test_ga_reaches_lm_optimum_on_mrr1(mrr1_data):
     """Seed Figure 6.9 setting: 50 individuals, 250 generations, 8 independent runs (vmapped). The LM
     optimum of this noise-free problem has fitness ~2e-8 (sum of norms over 8 poses); the GA brings

@@ -10,7 +10,8 @@ rotation is (1, P); entries that are exactly 0 or 1 at trace time (principal rot
 identity base) are skipped. Chain (eq 3.43): R_k = R_{k-1} Rs_k Rm_k, p_k = p_{k-1} + R_k (b_k + bm_k).
 
 Fitness (eq 5.4) compares the tip with the measurement mapped into the robot base frame,
-T_meas = D Y M^-1 (D device frame, M marker): ||R_meas - R||_2 = sqrt(3 - tr(R_meas^T R)) and the
+T_meas = D Y M^-1 (D device frame, M marker): ||R_meas - R||_2 = sqrt(3 - tr(R_meas^T R)) (evaluated as
+sqrt(|R_meas - R|_F^2 / 2), `jaxcal.ga.fitness`) and the
 position distance are unchanged by that rigid map, so they equal the device-frame values.
 """
 
@@ -155,12 +156,12 @@ def population_fitness(robot, device, a0, free_idx, pop, q, y, w1=1.0, w2=1.0):
         Yr = tuple(tuple(y[:, i, j, None] for j in range(3)) for i in range(3))
         Yp = tuple(y[:, i, 3, None] for i in range(3))
         # T_meas = D Y M^-1 compared with the tip T = (R, p): position R Mp + p vs D (Yp) and
-        # rotation trace tr((DR Yr)^T R MR) (= tr((D Y M^-1)_R^T R), the same spectral distance).
+        # rotations DR Yr and R MR (= (D Y M^-1)_R and R, the same spectral distance): sqrt(|A - B|_F^2 / 2)
         tip = tuple(_add(p[i], v) for i, v in enumerate(mv(R, Mp)))
         target = tuple(_add(Dp[i], v) for i, v in enumerate(mv(DR, Yp)))
         A, B = mm(DR, Yr), mm(R, MR)
-        tr = _add(*(_mul(A[i][j], B[i][j]) for i in range(3) for j in range(3)))
-        cost = w1 * _norm3(tip, target) + w2 * jnp.sqrt(jnp.maximum(3.0 - tr, 0.0))
+        d = [A[i][j] - B[i][j] for i in range(3) for j in range(3)]
+        cost = w1 * _norm3(tip, target) + w2 * jnp.sqrt(0.5 * _add(*(_mul(e, e) for e in d)))
     return jnp.sum(jnp.broadcast_to(cost, (q.shape[0], flat.shape[0])), axis=0).reshape(lead)
 
 
