@@ -52,7 +52,6 @@ from jaxcal.fit.lm import LevenbergMarquardt, residual_and_jacobian
 from jaxcal.forward import forward
 from jaxcal.kin.model import Robot
 from jaxcal.kin.pose import Pose
-from jaxcal.kin.rotations import log_so3
 from jaxcal.measure.devices import Device
 from jaxcal.names import check_names
 
@@ -658,7 +657,6 @@ def registered_frame(problem: Problem, a_full) -> np.ndarray | None:
     return x if registered else None
 
 
-_log_so3 = jax.jit(log_so3)  # compiled: op by op it took ~2 ms of a 30 ms identify
 UNIT_FIT = 0.2  # a scaled registration names a unit mistake only when its residual is below this share of the spread
 
 
@@ -681,8 +679,10 @@ def _registration(device: Device, P, Y) -> np.ndarray | None:
     if unit is not None and _explains(P, s * Y @ R.T + t):
         raise DataError(f"the {device.kind} readings fit the robot only after scaling them by {s:.4g}: they look like {unit}, "
                         "not metres; give the unit (Dataset.from_csv(..., length_unit=...) or a '# units:' line)")
+    from scipy.spatial.transform import Rotation  # on the host: a compiled log_so3 took 0.13 s of the first call
+
     R, t = rigid_registration(P, Y)
-    return np.concatenate([t, np.asarray(_log_so3(np.asarray(R, float)))])
+    return np.concatenate([t, Rotation.from_matrix(R).as_rotvec()])
 
 
 @dataclasses.dataclass(frozen=True)

@@ -451,10 +451,9 @@ def identify(
     if cal.polish.get("accepted"):
         covariance, polished_se = _polished_covariance(cal, r_final, readings, names)
     pick = (lambda p, o: p if p is not None else o)
-    a_full = jnp.asarray(cal.x)
     to_names = lambda idx: tuple(names[i] for i in idx)  # noqa: E731
     fit = FitResult(
-        robot=robot, device=device, a=a_full[:nr], device_params=a_full[nr:], names=names,
+        robot=robot, device=device, a=jnp.asarray(cal.x[:nr]), device_params=jnp.asarray(cal.x[nr:]), names=names,
         rms_before=pick(before_p, before_o), rms_after=pick(after_p, after_o),
         orientation_rms_before=before_o if before_p is not None else None,
         orientation_rms_after=after_o if after_p is not None else None,

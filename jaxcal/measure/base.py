@@ -194,7 +194,7 @@ class Device(abc.ABC):
         """Weights (m,) of one sample's residual: 1/sigma_position on length entries,
         1/sigma_orientation on angle entries (whitening by the a-priori noise levels)."""
         length = np.array([c == "length" for c in self.residual_components])
-        return jnp.where(length, 1.0 / sigma_position, 1.0 / sigma_orientation)
+        return np.where(length, 1.0 / sigma_position, 1.0 / sigma_orientation)
 
     @property
     def error_unit(self) -> str:
