@@ -10,8 +10,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 # 62 -> 90 ms). LLVM's optimisation level 0 halves the rest (the Stanford arm's residual and Jacobian: XLA 1.25 ->
 # 0.63 s; the code runs ~3x slower: 2.2 -> 7.4 ms): five closure and identify test files, two workers, fresh
 # cache, 244 -> 155 s, every test passing. The tests check results, not speed, so they compile with both; the
-# library and the benchmarks keep XLA's defaults. Set by the first pytest process and inherited by the workers,
-# only where this jaxlib accepts the flags (an unknown XLA flag aborts the process), never over a user's XLA_FLAGS.
+# library compiles its solver with the first (`core.CPU_COMPILE_OPTIONS`) and everything else with XLA's defaults.
+# Set by the first pytest process and inherited by the workers, only where this jaxlib accepts the flags (an unknown
+# XLA flag aborts the process), never over a user's XLA_FLAGS.
 TEST_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0"
 
 

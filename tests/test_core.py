@@ -328,3 +328,21 @@ def test_jacobian_from_the_solver_program_is_jacfwd_and_predicted_is_readings(na
     J_end = problem.jacobian(sol.x)
     err = np.max(np.abs(sol.J - J_end)) / np.max(np.abs(J_end))
     assert err < 1e-12, err
+
+
+def test_solver_compile_options_are_used_on_cpu_and_left_out_where_unknown(monkeypatch):
+    """`compile_solver` compiles with CPU_COMPILE_OPTIONS on the CPU backend; a jaxlib that does not know one of
+    them gets the program compiled without (not an error); another compile error is not swallowed."""
+    import jax
+    import jax.numpy as jnp
+
+    lowered = jax.jit(lambda x: 2.0 * x + 1.0).lower(jnp.arange(3.0))
+    assert jax.default_backend() == "cpu"
+    np.testing.assert_array_equal(core.compile_solver(lowered, False)(jnp.arange(3.0)), [1.0, 3.0, 5.0])
+    monkeypatch.setattr(core, "CPU_COMPILE_OPTIONS", {"xla_cpu_no_such_option_of_jaxcal": False})
+    np.testing.assert_array_equal(core.compile_solver(lowered, False)(jnp.arange(3.0)), [1.0, 3.0, 5.0])
+    with pytest.raises(Exception, match="No such compile option"):
+        lowered.compile(compiler_options=core.CPU_COMPILE_OPTIONS)  # what the fallback answers
+    monkeypatch.setattr(core, "CPU_COMPILE_OPTIONS", {"xla_cpu_use_fusion_emitters": "not a flag value"})
+    with pytest.raises(Exception):
+        core.compile_solver(lowered, False)
