@@ -93,17 +93,16 @@ def test_other_geometry_closes_on_its_nominal_solutions(other):
         assert bool(ok) and float(jnp.max(jnp.abs(back - t))) < 1e-9
 
 
-@pytest.mark.slow  # the generic closure's first op-by-op run compiles its ops (~15 s)
+@pytest.mark.slow  # compiles the generic whole-tree closure
 def test_fast_path_agrees_with_the_generic_closure(other):
     """`jaxcal.closure.core.solve` (whole-tree closure, damped Newton from the closed home configuration)
     and the fast path give the same 15 free joints at perturbed parameters."""
     a = jc.perturb(other, 1e-3, seed=2)
-    with jax.disable_jit():
-        for theta in _settings(2, seed=3):
-            fast = dl.solve(other, a, theta)
-            generic = core.solve(other, a, theta, start=other.closure.start)
-            assert bool(fast.ok) and bool(generic.ok)
-            assert float(np.max(np.abs(_wrap(fast.theta_free - generic.theta_free)))) < 1e-9
+    for theta in _settings(2, seed=3):  # both solves are kept executables (`jaxcal.exported`): compiled, not op by op
+        fast = dl.solve(other, a, theta)
+        generic = core.solve(other, a, theta, start=other.closure.start)
+        assert bool(fast.ok) and bool(generic.ok)
+        assert float(np.max(np.abs(_wrap(fast.theta_free - generic.theta_free)))) < 1e-9
 
 
 @pytest.mark.slow  # compiles jacfwd through the closure (~15-25 s)

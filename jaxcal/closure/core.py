@@ -103,7 +103,9 @@ class Closure:
         return len(self.free)
 
     # whether reverse-mode derivatives (J^T, needed by the dogleg and BFGS solvers) pass through the closure: the
-    # custom JVP below (implicit function theorem) cannot be transposed; the Delta's fast path can
+    # custom JVP below (implicit function theorem) cannot be transposed; the Delta's fast path can, and provides
+    # presolve(robot, a, q) (the closure per sample, without derivative) and forward_presolved(robot, a, q, pre) (the
+    # tool from it, differentiable in reverse mode) for the fits' sample-by-sample Jacobian
     transposable: ClassVar[bool] = False
 
 

@@ -188,12 +188,25 @@ class RobotDevice:
 
     @property
     def jacobian_mode(self) -> str:
-        """Reverse mode sample by sample for open chains (`data_residual_and_jacobian`), forward through closures."""
-        return "reverse" if self.robot.closure is None else "forward"
+        """`robot_jacobian_mode` of the robot."""
+        return robot_jacobian_mode(self.robot)
 
-    def residuals(self, x, q, y, cov, w):
-        """w * (y - read(forward(a, q), d)) (N, m); cov is ignored."""
-        return residuals(self.robot, self.device, x, q, y, w)
+    def presolve(self, x, q):
+        """The closure of each sample at x, without derivative (`Closure.presolve`), for `residuals`' pre; None
+        for an open chain."""
+        if self.robot.closure is None:
+            return None
+        return self.robot.closure.presolve(self.robot, x[: self.robot.n_params], q)
+
+    def residuals(self, x, q, y, cov, w, pre=None):
+        """w * (y - read(forward(a, q), d)) (N, m); cov is ignored. With pre (`presolve` at the same x and q) a
+        closed mechanism's tool comes from `Closure.forward_presolved`, which reverse mode differentiates."""
+        if pre is None:
+            return residuals(self.robot, self.device, x, q, y, w)
+        nr = self.robot.n_params
+        self.device.check_robot(self.robot)
+        tool = self.robot.closure.forward_presolved(self.robot, x[:nr], q, pre)
+        return misfit(self.device, jax.vmap(self.device.read, (0, None))(tool, x[nr:]), y, w)
 
 
 def prior_rows(x, args):
@@ -231,6 +244,13 @@ def stacked_scaled(model, z, args):
     return model_stacked(model, args["a_ref"] + args["x_scale"] * z, args)
 
 
+def robot_jacobian_mode(robot: Robot) -> str:
+    """"reverse" (sample by sample, `data_residual_and_jacobian`) for open chains and closures whose derivative
+    transposes (`Closure.transposable`: the Delta's fast path), "forward" through the other closures (the
+    generic closure's implicit derivative is a custom_jvp)."""
+    return "reverse" if robot.closure is None or robot.closure.transposable else "forward"
+
+
 def jacobian_mode(model) -> str:
     """"reverse" when the residual model's samples may be differentiated one by one in reverse mode (its
     `jacobian_mode`), else "forward" (closed loops: the closure's implicit derivative is a custom_jvp)."""
@@ -245,17 +265,25 @@ def data_residual_and_jacobian(model, a_full, q, y, cov, w):
     the samples: m reverse passes instead of P forward tangents through the kinematics (Stanford arm, 200
     positions, P = 52: 0.74 ms instead of 4.5 ms on this 2-core CPU), in chunks of JACOBIAN_CHUNK samples (a loop
     over chunks, each vmapped) so that the reverse passes' intermediates stay bounded (100,000 positions: peak
-    RSS of `identify` 2.0 GB in one batch). Forward mode: the pushforwards of the unit vectors through all rows, vmapped,
-    sharing one primal pass (`lm.residual_and_jacobian`: one closure solve, not two)."""
+    RSS of `identify` 2.0 GB in one batch). A model with a `presolve(a_full, q)` (a closed mechanism) solves what has
+    no derivative (the closure) once for the batch, and each sample's pass starts from its part (`pre`): solved
+    inside the vmapped passes, a loop that runs until its slowest lane ends would run for every sample. Forward
+    mode: the pushforwards of the unit vectors through all rows, vmapped, sharing one primal pass
+    (`lm.residual_and_jacobian`: one closure solve, not two)."""
     if jacobian_mode(model) != "reverse":  # the pushforwards of the unit vectors share one primal pass (one closure solve)
         return residual_and_jacobian(lambda a, _: model.residuals(a, q, y, cov, w).reshape(-1), a_full, None)
 
+    presolve = getattr(model, "presolve", None)
+    pre = None if presolve is None else presolve(a_full, q)
+    given = (lambda p: {}) if pre is None else (lambda p: {"pre": jax.tree_util.tree_map(lambda v: v[None], p)})
+
     def one(sample):
-        qi, yi, ci, wi = sample
-        r, pullback = jax.vjp(lambda a: model.residuals(a, qi[None], yi[None], ci[None], wi[None]).reshape(-1), a_full)
+        qi, yi, ci, wi, pi = sample
+        r, pullback = jax.vjp(lambda a: model.residuals(a, qi[None], yi[None], ci[None], wi[None], **given(pi)).reshape(-1),
+                              a_full)
         return r, jax.vmap(pullback)(jnp.eye(r.shape[0], dtype=r.dtype))[0]
 
-    r, J = jax.lax.map(one, (q, y, cov, w), batch_size=JACOBIAN_CHUNK)
+    r, J = jax.lax.map(one, (q, y, cov, w, pre), batch_size=JACOBIAN_CHUNK)
     return r.reshape(-1), J.reshape(-1, a_full.shape[0])
 
 
