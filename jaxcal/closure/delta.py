@@ -49,9 +49,16 @@ from jaxcal.kin.rotations import rot_x, rot_y
 from jaxcal.linalg import solve_small
 
 CLOSURE_TOL = 1e-10  # closure residual norm above which a sample is infeasible (seed 004 §4.3)
-NEWTON_STEPS = 8
+NEWTON_STEPS = 12
 NEWTON_TOL = 1e-12  # m; the final implicit step squares this
-BRANCH_RADIUS = 0.5  # rad: the fast path is trusted only this close (max norm) to the nominal direct-solution start
+NEWTON_DAMPING = (1.0, 0.5, 0.25, 0.125, 0.0625)  # step fractions a Newton step tries, the first that lowers |F| taken
+# The fast path is trusted only where its nacelle (rod 1's last frame) lies this close to the nacelle of the nominal
+# direct-solution start: BRANCH_RADIUS in rotation angle (rad), BRANCH_DISTANCE in position (m). The other assembly
+# modes turn the ball joint by ~2.5 rad or mirror the nacelle by metres. Measured on the nacelle frame, not on the
+# joint angles: near the ball joint's gimbal lock (q8 ~ pi/2) the same nacelle is reached with q7 and q9 each turned
+# by ~1.8 rad (Table 4.6 Delta, 1 mm errors, one of 125 random settings).
+BRANCH_RADIUS = 0.5
+BRANCH_DISTANCE = 0.1
 TRACK_TOL = 1e-12  # m: residual norm each continuation corrector reaches
 TRACKED_CHUNK = 8  # samples the continuation runs on at once (`tracked_samples`)
 
@@ -302,14 +309,21 @@ def _residual_and_jacobian(robot, st, fixed, x):
 
 
 def _newton(robot, st, fixed, x0):
-    """Newton on the square 5 x 5 sphere system until max |F| <= NEWTON_TOL (at most NEWTON_STEPS):
-    (x, max |F| at the last point evaluated, iterations)."""
+    """Damped Newton on the square 5 x 5 sphere system until max |F| <= NEWTON_TOL (at most NEWTON_STEPS):
+    (x, max |F| at the last point evaluated, iterations). Each step is x - t J^-1 F with t the first of
+    NEWTON_DAMPING that lowers |F| (the smallest when none does): full steps near a root, so quadratic convergence
+    there, and no divergence from a start outside Newton's basin (near the ball joint's gimbal lock plain Newton
+    left 8 steps at |x - x0| ~ 3.8e3 rad where the damped one closed in 9)."""
+    fractions = jnp.asarray(NEWTON_DAMPING)
 
     def step(carry):
         x, _, i = carry
         F, J = _residual_and_jacobian(robot, st, fixed, x)
         err = jnp.max(jnp.abs(F))
-        return jnp.where(err > NEWTON_TOL, x - solve_small(J, F), x), err, i + 1
+        trials = x - fractions[:, None] * solve_small(J, F)
+        lower = jax.vmap(lambda xt: jnp.sum(_sphere_residual(robot, st, fixed, xt) ** 2))(trials) < jnp.sum(F**2)
+        pick = jnp.where(jnp.any(lower), jnp.argmax(lower), len(NEWTON_DAMPING) - 1)
+        return jnp.where(err > NEWTON_TOL, trials[pick], x), err, i + 1
 
     def more(carry):
         _, err, i = carry
@@ -364,10 +378,18 @@ def structure_ok(robot, st):
     return jnp.max(jnp.abs(jnp.stack(dev))) <= 1e-12
 
 
+def _near(nacelle: Pose, start: Pose):
+    """Whether two nacelle frames lie within BRANCH_DISTANCE (m) and BRANCH_RADIUS (rotation angle, rad) of each
+    other; the angle is 2 asin(|R - R0|_F / sqrt(8)), accurate at small angles."""
+    chord = jnp.linalg.norm(nacelle.R - start.R) / np.sqrt(8.0)
+    angle = 2.0 * jnp.arcsin(jnp.minimum(chord, 1.0))
+    return (jnp.linalg.norm(nacelle.p - start.p) <= BRANCH_DISTANCE) & (angle <= BRANCH_RADIUS)
+
+
 def _fast_single(robot, a, q):
     """The fast path for one actuator vector q (3,) (a, q without derivative): the nominal
-    direct-solution start x0, Newton's result, whether the fast path is trusted (closed, and within
-    BRANCH_RADIUS of x0, i.e. on the nominal branch), whether it closed at all, and whether the
+    direct-solution start x0, Newton's result, whether the fast path is trusted (closed, and its nacelle `_near`
+    the start's, i.e. on the nominal branch), whether it closed at all, and whether the
     reduction applies (`structure_ok`, nominal direct solution feasible)."""
     st = _statics(robot, a)
     fixed = _fixed(robot, st, q)
@@ -375,7 +397,7 @@ def _fast_single(robot, a, q):
     x_fast, err_fast, k_fast = _newton(robot, st, fixed, x0)
     valid = ok_start & structure_ok(robot, st)
     closes = valid & (err_fast <= NEWTON_TOL) & jnp.all(jnp.isfinite(x_fast))
-    fast_ok = closes & (jnp.max(jnp.abs(x_fast - x0)) <= BRANCH_RADIUS)
+    fast_ok = closes & _near(_nacelle(robot, st, fixed, x_fast), _nacelle(robot, st, fixed, x0))
     return jnp.where(jnp.isfinite(x0), x0, 0.0), x_fast, fast_ok, closes, valid, k_fast
 
 
