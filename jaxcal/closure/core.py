@@ -102,11 +102,18 @@ class Closure:
     def n_free(self) -> int:
         return len(self.free)
 
-    # whether reverse-mode derivatives (J^T, needed by the dogleg and BFGS solvers) pass through the closure: the
-    # custom JVP below (implicit function theorem) cannot be transposed; the Delta's fast path can, and provides
-    # presolve(robot, a, q) (the closure per sample, without derivative) and forward_presolved(robot, a, q, pre) (the
-    # tool from it, differentiable in reverse mode) for the fits' sample-by-sample Jacobian
+    # whether reverse-mode derivatives (J^T, needed by the dogleg and BFGS solvers) pass through `forward_closed`:
+    # the custom JVP below (implicit function theorem) cannot be transposed; the Delta's fast path can. (The fits'
+    # sample-by-sample Jacobian goes through `presolve` and `forward_presolved`, which reverse mode differentiates.)
     transposable: ClassVar[bool] = False
+
+    def presolve(self, robot: Robot, a, q):
+        """`presolve` (robot: the serving robot, as in a fit's problem)."""
+        return presolve(robot, a, q)
+
+    def forward_presolved(self, robot: Robot, a, q, pre) -> Pose:
+        """`forward_presolved` (robot: the serving robot, as in a fit's problem)."""
+        return forward_presolved(robot, a, q, pre)
 
 
 class ClosureSolution(NamedTuple):
@@ -393,6 +400,45 @@ def forward_closed(robot: Robot, a, q, start=None) -> Pose:
     a = jnp.asarray(a, dtype=jnp.float64)
     q = jnp.asarray(q, dtype=jnp.float64)
     return _forward_batched(robot, a, q, *_start(robot, start))
+
+
+def presolve(robot: Robot, a, q):
+    """The closure of each sample of q (..., n_inputs) without derivative: (theta_free, ok) of `solve` at a, for
+    `forward_presolved`."""
+    sol = solve(robot, jax.lax.stop_gradient(a), jax.lax.stop_gradient(q))
+    return sol.theta_free, sol.ok
+
+
+def _implicit_step(robot: Robot, a, qj, theta):
+    """theta with the implicit derivative of eq 2.65-2.69 and no change of value: theta + d - stop_gradient(d), with
+    d = -(V^T V)^-1 V^T v(a, qj, theta) and V = dv/dtheta held fixed (`_closed_theta_jvp`'s derivative, written so
+    that reverse mode passes through it)."""
+    sg = jax.lax.stop_gradient
+    V = jax.jacfwd(lambda th: closure_residual(robot, sg(a), sg(qj), th))(theta)
+    v = closure_residual(robot, a, qj, theta)
+    d = -solve_small(V.T @ V, V.T @ v)
+    d = jnp.where(jnp.all(jnp.isfinite(sg(d))), d, 0.0)  # singular V: no closure, flagged anyway
+    return theta + d - sg(d)
+
+
+def forward_presolved(robot: Robot, a, q, pre) -> Pose:
+    """`forward_closed` from the closure solved beforehand (`presolve` at the same a and q): the same tool poses and
+    derivatives, by plain autodiff through `_implicit_step` (forward or reverse mode).
+
+    A fit differentiates it in reverse mode sample by sample (`jaxcal.fit.core.data_residual_and_jacobian`): the
+    closure is solved once for the batch, and each sample's readings take as many reverse passes as they have
+    components instead of one tangent per parameter through the custom JVP."""
+    a = jnp.asarray(a, dtype=jnp.float64)
+    theta, ok = pre
+    lead = q.shape[:-1]
+
+    def one(qi, th, k):
+        qj = joint_variables(robot, a, qi)
+        f = tree_frames(robot, a, qj, _implicit_step(robot, a, qj, jax.lax.stop_gradient(th)))
+        return failed_pose(Pose(f.R[robot.tip], f.p[robot.tip]), k)
+
+    out = jax.vmap(one)(q.reshape(-1, q.shape[-1]), theta.reshape(-1, theta.shape[-1]), ok.reshape(-1))
+    return jax.tree_util.tree_map(lambda v: v.reshape(lead + v.shape[1:]), out)
 
 
 @exported.jit(static_argnums=(0,))

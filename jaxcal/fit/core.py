@@ -188,8 +188,9 @@ class RobotDevice:
 
     @property
     def jacobian_mode(self) -> str:
-        """`robot_jacobian_mode` of the robot."""
-        return robot_jacobian_mode(self.robot)
+        """Reverse mode sample by sample (`data_residual_and_jacobian`); a closed mechanism's closure is solved for
+        the batch first (`presolve`)."""
+        return "reverse"
 
     def presolve(self, x, q):
         """The closure of each sample at x, without derivative (`Closure.presolve`), for `residuals`' pre; None
@@ -242,13 +243,6 @@ def stacked_scaled(model, z, args):
     (MINPACK's diagonal scaling with fixed scales). On the Delta (seed 004 Table 4.6: lengths of 0.1-0.4 m,
     angles, 9 tracker-frame entries) raw units took > 200 steps where z takes tens."""
     return model_stacked(model, args["a_ref"] + args["x_scale"] * z, args)
-
-
-def robot_jacobian_mode(robot: Robot) -> str:
-    """"reverse" (sample by sample, `data_residual_and_jacobian`) for open chains and closures whose derivative
-    transposes (`Closure.transposable`: the Delta's fast path), "forward" through the other closures (the
-    generic closure's implicit derivative is a custom_jvp)."""
-    return "reverse" if robot.closure is None or robot.closure.transposable else "forward"
 
 
 def jacobian_mode(model) -> str:
