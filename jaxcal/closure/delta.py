@@ -51,7 +51,7 @@ from jaxcal.linalg import solve_small
 CLOSURE_TOL = 1e-10  # closure residual norm above which a sample is infeasible (seed 004 §4.3)
 NEWTON_STEPS = 12
 NEWTON_TOL = 1e-12  # m; the final implicit step squares this
-NEWTON_DAMPING = (1.0, 0.5, 0.25, 0.125, 0.0625)  # step fractions a Newton step tries, the first that lowers |F| taken
+NEWTON_HALVINGS = 4  # a Newton step is halved until it lowers |F|, at most this many times
 # The fast path is trusted only where its nacelle (rod 1's last frame) lies this close to the nacelle of the nominal
 # direct-solution start: BRANCH_RADIUS in rotation angle (rad), BRANCH_DISTANCE in position (m). The other assembly
 # modes turn the ball joint by ~2.5 rad or mirror the nacelle by metres. Measured on the nacelle frame, not on the
@@ -310,20 +310,28 @@ def _residual_and_jacobian(robot, st, fixed, x):
 
 def _newton(robot, st, fixed, x0):
     """Damped Newton on the square 5 x 5 sphere system until max |F| <= NEWTON_TOL (at most NEWTON_STEPS):
-    (x, max |F| at the last point evaluated, iterations). Each step is x - t J^-1 F with t the first of
-    NEWTON_DAMPING that lowers |F| (the smallest when none does): full steps near a root, so quadratic convergence
-    there, and no divergence from a start outside Newton's basin (near the ball joint's gimbal lock plain Newton
-    left 8 steps at |x - x0| ~ 3.8e3 rad where the damped one closed in 9)."""
-    fractions = jnp.asarray(NEWTON_DAMPING)
+    (x, max |F| at the last point evaluated, iterations). Each step is x - t J^-1 F with t = 1 halved until |F|
+    falls (at most NEWTON_HALVINGS times): full steps near a root, so quadratic convergence there, and no
+    divergence from a start outside Newton's basin (near the ball joint's gimbal lock plain Newton left 8 steps at
+    |x - x0| ~ 3.8e3 rad where the damped one closed in 9)."""
+
+    def norm2(x):
+        return jnp.sum(_sphere_residual(robot, st, fixed, x) ** 2)
 
     def step(carry):
         x, _, i = carry
         F, J = _residual_and_jacobian(robot, st, fixed, x)
         err = jnp.max(jnp.abs(F))
-        trials = x - fractions[:, None] * solve_small(J, F)
-        lower = jax.vmap(lambda xt: jnp.sum(_sphere_residual(robot, st, fixed, xt) ** 2))(trials) < jnp.sum(F**2)
-        pick = jnp.where(jnp.any(lower), jnp.argmax(lower), len(NEWTON_DAMPING) - 1)
-        return jnp.where(err > NEWTON_TOL, trials[pick], x), err, i + 1
+        d = solve_small(J, F)
+        f0 = jnp.sum(F**2)
+
+        def halve(c):
+            t, _, k = c
+            return 0.5 * t, norm2(x - 0.5 * t * d), k + 1
+
+        t = jax.lax.while_loop(lambda c: (c[1] >= f0) & (c[2] < NEWTON_HALVINGS), halve,
+                               (jnp.asarray(1.0, x.dtype), norm2(x - d), 0))[0]
+        return jnp.where(err > NEWTON_TOL, x - t * d, x), err, i + 1
 
     def more(carry):
         _, err, i = carry

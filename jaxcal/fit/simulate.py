@@ -48,7 +48,8 @@ def warn_unclosed(robot, status) -> np.ndarray:
         kinds = ", ".join(f"{np.sum(status == k)} {STATUS_NAMES[k]}" for k in (1, 2) if np.any(status == k))
         warnings.warn(f"{robot.name}: {bad.size} of {len(status)} simulated sample(s) do not close ({kinds}): "
                       f"{bad[:20].tolist()}{' ...' if bad.size > 20 else ''}; their readings are penalty values, "
-                      "not measurements (identify leaves them out)", stacklevel=3)
+                      "not measurements: drop them before a fit (identify leaves out only the samples that do not "
+                      "close at its starting parameters; these may close there)", stacklevel=3)
     return status
 
 
