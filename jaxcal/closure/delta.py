@@ -561,7 +561,7 @@ def forward_presolved(robot, a, q, pre) -> Pose:
     A fit differentiates it in reverse mode sample by sample (`jaxcal.fit.core.data_residual_and_jacobian`): the
     closure is solved once for the batch, then each sample's readings take as many reverse passes as they have
     components (3 for a position) instead of `forward`'s 12-row Jacobian contracted with every tangent. Seed 004
-    Table 4.6 Delta, 125 positions, 166 parameters: residuals and Jacobian 14.9 -> 5.3 ms on this 2-core CPU."""
+    Table 4.6 Delta, 125 positions, 166 parameters: residuals and Jacobian 14.9 -> 4.2 ms on this 2-core CPU."""
     a = jnp.asarray(a, dtype=jnp.float64)
     qf, lead = _flat(q)
     pre = jax.tree_util.tree_map(lambda v: v.reshape((-1,) + v.shape[len(lead):]), pre)
@@ -587,7 +587,7 @@ class DeltaClosure(Closure):
     still works from `start` near the home setting."""
 
     geometry: DeltaGeometry = NOMINAL
-    transposable = True  # its JVP is built from reverse-mode Jacobians; `presolve` and `forward_presolved` below
+    transposable = True  # its JVP is built from reverse-mode Jacobians
 
     def serving(self, robot, a, free_mask=None):
         """The robot itself while the fixed entries the reduction relies on (`structure_entries`) hold in a

@@ -247,7 +247,8 @@ def stacked_scaled(model, z, args):
 
 def jacobian_mode(model) -> str:
     """"reverse" when the residual model's samples may be differentiated one by one in reverse mode (its
-    `jacobian_mode`), else "forward" (closed loops: the closure's implicit derivative is a custom_jvp)."""
+    `jacobian_mode`), else "forward" (a model without `presolve` whose closure's implicit derivative is a custom_jvp:
+    the gap models of closed mechanisms)."""
     return getattr(model, "jacobian_mode", "forward")
 
 
