@@ -145,6 +145,19 @@ def test_never_writes_over_an_input(tmp_path, capsys):
     assert rc == 2 and robot.read_text() == GOOD_YAML
 
 
+def test_a_dataset_owns_its_joint_values():
+    """`Dataset` and `simulate` copy the joint values they are given: correcting a logged glitch in data.q (as
+    docs/tutorials/delta-theodolite.md writes one in) leaves the caller's configurations, which the next
+    simulation may reuse, as they were."""
+    rb = jc.robots.get("mrr1")
+    q = jc.random_configurations(rb, 5, seed=0)
+    kept = q.copy()
+    data = jc.simulate(rb, rb.nominal, q, "position")
+    data.q[2, 0] += np.pi / 2
+    jc.Dataset(q=q, y=data.y).q[0, 0] = 9.0
+    np.testing.assert_array_equal(q, kept)
+
+
 def test_failure_while_writing_leaves_nothing(tmp_path):
     from jaxcal.report.job import run_job, write_job
 

@@ -54,7 +54,7 @@ class Dataset:
 
     def __init__(self, q, y=None, device="position", covariates=None, R=None, p=None, joint_names=None, source=None):
         self.device = as_device(device, y)
-        q = np.asarray(q, float)
+        q = np.array(q, float)  # a copy: editing data.q (a glitch, a unit fix) leaves the caller's array as it was
         if q.ndim == 1:
             q = q[:, None]
         if q.ndim != 2:
