@@ -5,15 +5,14 @@ well-determined problem; for a noise-dominated one (theodolite angles from 3.7 m
 standard errors of several estimated parameters far above 1 mm) the last stages fit the noise along weak
 directions and the calibrated model
 predicts new settings worse than the nominal one. `choose_bias` picks where the schedule stops by
-k-fold cross-validation over the samples: the path BIAS_PATH is solved stage by stage on all samples from the
-frames-only start, each fold's estimate at every stage is one Gauss-Newton step from there with the fold's
-samples left out (`fold_score`), scored on those samples (weighted residual sum of squares), and the stage
-with the lowest pooled held-out score wins (`identify(bias="heldout")`, and `identify`'s default for a
-noise-dominated closed mechanism). On Delta simulation 3's seed-0 draw the fixed ILL_CONDITIONED_BIAS predicted
-new tool positions better (worst 0.95 mm against 1.79 mm), but over six noise draws it reached 8.05 mm where the
-k-fold choice stayed below 1.8 mm (docs/delta.md); the path stops once the held-out score has risen for PATIENCE
-stages in a row (the later stages are not run), and `core.calibrate` reuses its stages. Open chains keep
-ILL_CONDITIONED_BIAS.
+k-fold cross-validation over the samples: each fold's training set (a weight mask, so one compiled
+solver serves every fold) is fitted along the path BIAS_PATH from the same frames-only start, every stage
+is scored on the held-out samples (weighted residual sum of squares), and the stage with the lowest
+pooled held-out score wins (`identify(bias="heldout")`, and `identify`'s default for a noise-dominated closed
+mechanism). On Delta simulation 3's seed-0 draw the fixed ILL_CONDITIONED_BIAS predicted new tool positions
+better (worst 0.95 mm against 1.79 mm), but over six noise draws it reached 8.05 mm where the k-fold choice
+stayed below 1.8 mm (docs/delta.md); the k-fold path costs up to 24 solves, fewer when the held-out score has
+risen for PATIENCE stages in a row (the later stages are not run). Open chains keep ILL_CONDITIONED_BIAS.
 """
 
 from __future__ import annotations
@@ -101,57 +100,28 @@ def fold_index(n: int, folds: int, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).permutation(n) % folds
 
 
-def fold_score(J, r, held, z, z_ref, lam: float) -> float:
-    """Held-out weighted sum of squares |r_h + J_h delta|^2 of one fold, delta the Gauss-Newton step from z that
-    solves the fold's training rows t (the rows not `held`) with the bias, min |r_t + J_t delta|^2 + lam |z + delta -
-    z_ref|^2 (least squares on the stacked rows, so a rank-deficient J_t at lam = 0 takes the least-norm step).
-    J (rows, K), r (rows,): the weighted data Jacobian in typical-size units and the residual at z, the solution of
-    the same problem on every row; held: (rows,) bool."""
-    train = ~held
-    A = np.concatenate([J[train], np.sqrt(lam) * np.eye(J.shape[1])])
-    b = -np.concatenate([r[train], np.sqrt(lam) * (z - z_ref)])
-    delta = np.linalg.lstsq(A, b, rcond=None)[0]
-    return float(np.sum((r[held] + J[held] @ delta) ** 2))
-
-
 def heldout_scores(problem: core.Problem, cal: core.Calibration, settings: core.Settings, path=BIAS_PATH,
-                   folds: int = BIAS_FOLDS, seed: int = 0, patience: int = PATIENCE) -> tuple[np.ndarray, list]:
-    """(scores, stages): the pooled held-out weighted sum of squares after each stage of `path` (NaN for the stages
-    not run), and the solutions of the stages run on all samples (`core.Solution`, the stages `core.calibrate`
-    runs for the same schedule: its `stages`).
-
-    The path is solved once, on all samples, from the frames-only start (each stage from the last, biased toward
-    the start, as `core.calibrate` runs it). Each fold's estimate at a stage is one Gauss-Newton step from that
-    stage's solution with the fold's samples left out (`fold_score`: the approximate leave-fold-out estimate; the
-    stage's solution is the optimum of all folds together, so the step is short and the linearisation holds),
-    scored on the samples left out. Each fold's bias is the one its own solve would have (`core.Problem.args`
-    divides the weights by the RMS weighted residual of the fold's training samples at the start). Solving each
-    fold's path instead (the rule before 2026-11-27) gave the same choice on every case compared (docs/delta.md);
-    the pooled scores agreed to 0.01-1.2 %, at 4 x the solves (Delta, 125 positions: 20 fold solves, 2.0 s of a 2.6 s
-    identify). The path stops once the score has risen for `patience` stages in a row past its least: along a
-    regularisation path the held-out error falls, then rises as the fit follows the noise, and the stages past
-    the rise are the costly, weakly damped ones."""
+                   folds: int = BIAS_FOLDS, seed: int = 0, patience: int = PATIENCE) -> np.ndarray:
+    """Pooled held-out weighted sum of squares after each stage of `path` (one row per stage), stage by stage over
+    the folds; the path stops once the score has risen for `patience` stages in a row past its least (NaN for the
+    stages not run: along a regularisation path the held-out error falls, then rises as the fit follows the noise,
+    and the stages past the rise are the costly, weakly damped ones)."""
     used = np.flatnonzero(problem.used)
     fold = np.full(len(problem.q), -1)
     fold[used] = fold_index(len(used), folds, seed)
-    est = np.asarray(cal.estimated, int)
-    scale = problem.x_scale[est]
-    r0 = np.asarray(problem.residuals(cal.x_frames))
-    m = r0.shape[1]
-    row_fold = np.repeat(fold, m)
-    bias_unit = [np.mean(r0[problem.used & (fold != b)] ** 2) for b in range(folds)]  # `Problem.args`' scaling
-    scores, stages, x = np.full(len(path), np.nan), [], cal.x_frames
+    held = [fold == b for b in range(folds)]
+    trains = [problem.with_weights(problem.w * (~h)[:, None]) for h in held]
+    xs = [cal.x_frames] * folds
+    scores = np.full(len(path), np.nan)
     for k, mu in enumerate(path):
-        sol = core.solve(problem, x, est, settings, mu, ref=cal.x_frames)
-        stages.append(sol)
-        x = sol.x
-        J = (problem.jacobian(x) if sol.J is None else sol.J)[:, est] * scale
-        r = np.asarray(problem.residuals(x)).reshape(-1)
-        scores[k] = sum(fold_score(J, r, row_fold == b, x[est] / scale, cal.x_frames[est] / scale, mu * bias_unit[b])
-                        for b in range(folds))
+        scores[k] = 0.0
+        for b in range(folds):
+            xs[b] = core.solve(trains[b], xs[b], cal.estimated, settings, mu, ref=cal.x_frames).x
+            r = trains[b].with_weights(problem.w * held[b][:, None]).residuals(xs[b])  # held-out samples, the fits' shape
+            scores[k] += float(np.sum(np.asarray(r) ** 2))
         if k - least_stage(scores[:k + 1]) >= patience:
             break
-    return scores, stages
+    return scores
 
 
 def least_stage(scores) -> int:
@@ -161,14 +131,13 @@ def least_stage(scores) -> int:
 
 
 def choose_bias(problem: core.Problem, cal: core.Calibration, settings: core.Settings, path=BIAS_PATH,
-                folds: int = BIAS_FOLDS, seed: int = 0) -> tuple[list[float], np.ndarray, list]:
-    """(schedule, scores, stages): the prefix of `path` ending at the stage of least held-out error, the scores, and
-    the solutions of that schedule's stages on all samples (`heldout_scores`)."""
-    scores, stages = heldout_scores(problem, cal, settings, path, folds, seed)
+                folds: int = BIAS_FOLDS, seed: int = 0) -> tuple[list[float], np.ndarray]:
+    """(schedule, scores): the prefix of `path` ending at the stage of least held-out error, and the scores."""
+    scores = heldout_scores(problem, cal, settings, path, folds, seed)
     k = least_stage(scores)
-    return [float(m) for m in path[:k + 1]], scores, stages[:k + 1]
+    return [float(m) for m in path[:k + 1]], scores
 
 
 __all__ = ["BIAS_FOLDS", "BIAS_PATH", "EARLY_MARGIN", "EARLY_STEPS", "FEW_READINGS", "ILL_CONDITIONED_BIAS",
            "NOISE_DOMINATED", "PATIENCE", "PRIOR_PATH", "choose_bias", "clearly_noise_dominated", "few_readings",
-           "fold_index", "fold_score", "heldout_scores", "least_stage", "weakest_standard_error"]
+           "fold_index", "heldout_scores", "least_stage", "weakest_standard_error"]

@@ -935,7 +935,7 @@ def polish(problem: Problem, x, J, estimated, undetermined, settings: Settings) 
 
 def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool = True, bias=None, multistart: int = 0,
               seed: int = 0, base_tol: float | None = None, started: Calibration | None = None,
-              final_polish: bool = True, progress=None, early_stop=None, early_steps: int = 0, stages=()) -> Calibration:
+              final_polish: bool = True, progress=None, early_stop=None, early_steps: int = 0) -> Calibration:
     """The calibration path every client uses: start, base set at the start, bias stages (and multi-start), then
     the all-parameter polish (`polish`, with base and final_polish).
     started: an earlier calibration of the same problem and settings, whose start (and its Jacobian) is reused.
@@ -944,10 +944,7 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
     LM without multi-start (the optimistix solvers take no step limit): the fit runs early_steps iterations first;
     converged by then, it goes on as without; else early_stop is asked at that point, and True returns the
     calibration there (`stopped_early`, unconverged, no polish), False solves again from the stage's start with the
-    full step limit (the result is the one without early_stop, at the cost of early_steps iterations).
-    stages: solutions of the first bias stages of this schedule already run from this start (`fit.bias.heldout_scores`
-    solves the path on all samples to score it), taken in place of solving them again where their estimated set is
-    this calibration's (not with multi-start)."""
+    full step limit (the result is the one without early_stop, at the cost of early_steps iterations)."""
     say = progress or (lambda text: None)
     t0 = time.perf_counter()
     if started is not None and started.problem is problem:
@@ -966,7 +963,7 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
         frames_fitted = np.zeros(0, int) if frames_sol is None else frames_sol.estimated
     est, undetermined, no_effect, regrouped = choose_estimated(problem, J0, base, base_tol)
     x, iterations, converged, histories = x_frames, 0, True, []
-    for stage, mu in enumerate(bias_schedule(bias)):
+    for mu in bias_schedule(bias):
         say(f"fit of {len(est)} parameters" + (f", bias mu = {mu:g}" if mu else "")
             + (f", {multistart + 1} starts" if multistart else ""))
         if multistart:
@@ -990,8 +987,6 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
             if not sol.converged:
                 compile_s += sol.compile_s
                 sol = solve(problem, x, est, settings, mu, ref=x_frames)
-        elif stage < len(stages) and np.array_equal(stages[stage].estimated, est):
-            sol = dataclasses.replace(stages[stage], compile_s=0.0)  # solved before this call: no compile here
         else:
             sol = solve(problem, x, est, settings, mu, ref=x_frames)
         histories.append(sol.history)

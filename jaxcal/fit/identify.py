@@ -285,16 +285,16 @@ def calibrate_with_default_bias(problem: core.Problem, settings: core.Settings, 
             every_free = bias is None and base and problem.robot.closure is None and few_readings(cal)
             if every_free:  # every free parameter under the bias, where it stops chosen by k-fold (`fit.bias`)
                 cal = dataclasses.replace(cal, estimated=np.flatnonzero(problem.free))
-                schedule, scores, stages = choose_bias(problem, cal, settings, path=PRIOR_PATH)
+                schedule, scores = choose_bias(problem, cal, settings, path=PRIOR_PATH)
                 bias_info["bias_heldout"] = scores.tolist()  # NaN: a stage not run
             elif bias is None and problem.robot.closure is None:
-                schedule, stages = list(ILL_CONDITIONED_BIAS), ()
+                schedule = list(ILL_CONDITIONED_BIAS)
             else:  # bias="heldout", and a closed mechanism by default: the stop chosen by k-fold held-out error
-                schedule, scores, stages = choose_bias(problem, cal, settings)
+                schedule, scores = choose_bias(problem, cal, settings)
                 bias_info["bias_heldout"] = scores.tolist()  # NaN: a stage not run
             bias_info.update(bias_schedule=schedule, bias_every_free=every_free)
             cal = core.calibrate(problem, settings, base=base and not every_free, bias=schedule, multistart=multistart,
-                                 seed=seed, base_tol=base_tol, started=cal, progress=progress, stages=stages)
+                                 seed=seed, base_tol=base_tol, started=cal, progress=progress)
         bias_info["weakest_standard_error"] = weakest
     return cal, bias_info
 
