@@ -122,6 +122,9 @@ def _read_poses(device: Device, tool: Pose, d):
 _PREDICTED: collections.OrderedDict = collections.OrderedDict()
 _PREDICTED_MAX = 8  # the last readings evaluated, by robot, device and content of a_full and q
 compiled.register(_PREDICTED.clear)
+# Guards _PREDICTED and _COMPILED: solves run from several threads at once (`fit.bias.heldout_scores`' folds), and a
+# look-up followed by move_to_end must not meet another thread's eviction of the same key.
+_CACHE_LOCK = threading.Lock()
 
 
 def predicted(robot: Robot, device: Device, a_full, q) -> np.ndarray:
@@ -135,9 +138,10 @@ def predicted(robot: Robot, device: Device, a_full, q) -> np.ndarray:
     errors and the covariance), 13 evaluations of ~0.45 ms each on the Stanford arm at 200 positions."""
     a_full, q = np.asarray(a_full, float), np.asarray(q, float)
     key = (robot, device, q.shape, hashlib.blake2b(a_full.tobytes() + q.tobytes(), digest_size=20).digest())
-    if key in _PREDICTED:
-        _PREDICTED.move_to_end(key)
-        return _PREDICTED[key]
+    with _CACHE_LOCK:
+        if key in _PREDICTED:
+            _PREDICTED.move_to_end(key)
+            return _PREDICTED[key]
     if robot.closure is None:
         out = np.asarray(readings(robot, device, a_full, q))
     else:
@@ -145,9 +149,10 @@ def predicted(robot: Robot, device: Device, a_full, q) -> np.ndarray:
         tool, _ = forward_with_status(robot, a_full[:robot.n_params], q)
         out = np.asarray(_read_poses(device, tool, a_full[robot.n_params:]))
     out.flags.writeable = False
-    _PREDICTED[key] = out
-    if len(_PREDICTED) > _PREDICTED_MAX:
-        _PREDICTED.popitem(last=False)
+    with _CACHE_LOCK:
+        _PREDICTED[key] = out
+        if len(_PREDICTED) > _PREDICTED_MAX:
+            _PREDICTED.popitem(last=False)
     return out
 
 
@@ -435,18 +440,20 @@ def compiled_model_solver(x0, args, model, settings: Settings, batched=()):
     there too (`jaxcal.exported`): a later process skips tracing it."""
     placed = exported.placements((x0, args))
     key = (model, settings, tuple(batched), exported.signature((x0, args)), placed, exported.lowering_config())
-    if key in _COMPILED:
-        _COMPILED.move_to_end(key)
-        return _COMPILED[key], 0.0
+    with _CACHE_LOCK:
+        if key in _COMPILED:
+            _COMPILED.move_to_end(key)
+            return _COMPILED[key], 0.0
     t = time.perf_counter()
     static = dict(model=model, settings=settings, batched=tuple(batched))
     if placed:  # committed to another device: lowered for that placement, not kept across processes
         exe = compile_solver(_solve_jit.lower(x0, args, step_limit(0), **static), True)
     else:
         exe = compile_solver(exported.lower(_solve_jit, (x0, args, step_limit(0)), static), False)
-    _COMPILED[key] = exe
-    if len(_COMPILED) > _COMPILED_MAX:
-        _COMPILED.popitem(last=False)
+    with _CACHE_LOCK:
+        _COMPILED[key] = exe
+        if len(_COMPILED) > _COMPILED_MAX:
+            _COMPILED.popitem(last=False)
     return exe, time.perf_counter() - t
 
 
@@ -459,11 +466,13 @@ def evaluator(problem: "Problem", args, settings: Settings | None = None):
     if settings is not None and isinstance(make_solver(settings.solver, settings.rtol, settings.atol), LevenbergMarquardt):
         return compiled_model_solver(x0, args, problem.model, settings)
     shapes, config = exported.signature((x0, args)), exported.lowering_config()
-    for key in reversed(_COMPILED):
+    with _CACHE_LOCK:
+        kept = list(reversed(_COMPILED.items()))
+    for key, exe in kept:
         model, done, batched, done_shapes, placed, done_config = key
         if (model == problem.model and not batched and done_shapes == shapes and not placed and done_config == config
                 and isinstance(make_solver(done.solver, done.rtol, done.atol), LevenbergMarquardt)):
-            return _COMPILED[key], 0.0
+            return exe, 0.0
     return compiled_model_solver(x0, args, problem.model, Settings())
 
 

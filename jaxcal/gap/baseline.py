@@ -8,11 +8,13 @@ every sample.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 
 import numpy as np
 
 from jaxcal.fit import core
+from jaxcal.fit.bias import fold_workers
 from jaxcal.fit.identify import calibrate_with_default_bias, residual_weights
 
 
@@ -45,8 +47,15 @@ def baseline_calibrations(robot, data, train_masks, *, sigma_position: float, si
     settings = settings or core.Settings()
     if max_steps is not None:
         settings = dataclasses.replace(settings, max_steps=max_steps)
-    return [calibrate_with_default_bias(problem.with_weights(problem.w * (np.asarray(m) & closes)[:, None]), settings)
-            for m in train_masks]
+
+    def fit(mask):
+        return calibrate_with_default_bias(problem.with_weights(problem.w * (np.asarray(mask) & closes)[:, None]), settings)
+
+    if not len(train_masks):
+        return []
+    first = fit(train_masks[0])  # alone: it compiles the programs that every fold shares (same shapes)
+    with concurrent.futures.ThreadPoolExecutor(fold_workers(len(train_masks) - 1)) as pool:  # independent folds
+        return [first] + list(pool.map(fit, train_masks[1:]))
 
 
 __all__ = ["baseline_calibrations", "baseline_fits", "final_bias"]

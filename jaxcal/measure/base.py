@@ -115,7 +115,16 @@ class Device(abc.ABC):
 
     # -- value semantics -------------------------------------------------------------------------
     def _key(self):
-        return (type(self),) + tuple(_hashable(getattr(self, f.name)) for f in dataclasses.fields(self))
+        """The device's value (its type and fields), computed once: a device is frozen, and the solvers' caches
+        hash it on every call (~60 times an `identify`, 13 us each)."""
+        key = self.__dict__.get("_value_key")
+        if key is None:
+            key = (type(self),) + tuple(_hashable(getattr(self, f.name)) for f in dataclasses.fields(self))
+            object.__setattr__(self, "_value_key", key)
+        return key
+
+    def __getstate__(self):  # the fields alone: a pickle (`jaxcal.exported`'s fingerprint) must not see the cache
+        return {k: v for k, v in self.__dict__.items() if k != "_value_key"}
 
     def __hash__(self):  # by value, so equal devices share compiled solvers (static jit argument)
         return hash(self._key())
