@@ -201,7 +201,7 @@ def test_bias_path_stops_once_the_held_out_score_has_risen_for_patience_stages(m
 
     def solve(problem, x, estimated, settings, mu, ref):
         calls.append(mu)
-        return SimpleNamespace(x=mu)  # the "estimate" is the stage's mu; its held-out score is curve[mu]
+        return SimpleNamespace(x=mu, converged=mu != 1e-3)  # the "estimate" is mu; its held-out score is curve[mu]
 
     class Problem:
         used, q = np.ones(8, bool), np.zeros((8, 1))
@@ -217,12 +217,35 @@ def test_bias_path_stops_once_the_held_out_score_has_risen_for_patience_stages(m
 
     monkeypatch.setattr(bias.core, "solve", solve)
     cal = SimpleNamespace(x_frames=None, estimated=np.arange(3))
-    schedule, scores = bias.choose_bias(Problem(np.ones((8, 1))), cal, None)
+    schedule, scores, record = bias.choose_bias(Problem(np.ones((8, 1))), cal, None)
     np.testing.assert_allclose(scores[:4], [5.0, 3.0, 4.0, 6.0])
     assert np.all(np.isnan(scores[4:])) and len(calls) == 4 * bias.BIAS_FOLDS
     assert schedule == list(bias.BIAS_PATH[:2])
-    full = bias.heldout_scores(Problem(np.ones((8, 1))), cal, None, patience=len(bias.BIAS_PATH))
+    # the stage at mu = 1e-3 "stops unconverged" on every fold: counted, for identify's health warning
+    assert record == {"bias_fold_solves": 4 * bias.BIAS_FOLDS, "bias_fold_solves_unconverged": bias.BIAS_FOLDS}
+    full, _, _ = bias.heldout_scores(Problem(np.ones((8, 1))), cal, None, patience=len(bias.BIAS_PATH))
     assert bias.least_stage(full) == len(bias.BIAS_PATH) - 1
+
+
+def test_a_bias_chosen_from_unconverged_fold_fits_is_a_health_warning():
+    """The k-fold bias choice scores each stage by the folds' fits; a fit stopped at the step limit is not its
+    fold's optimum, so the choice may not be the data's. identify counts those fits (`fit.info`) and says so in
+    its health record (the exit code of `jaxcal calibrate`). The few-readings TALOS arm of
+    `test_few_readings_default_estimates_every_parameter_under_a_chosen_bias`: with the default step limit every
+    fold fit converges and nothing is said; at 3 steps they stop unconverged and the warning names how many."""
+    rb = jc.robots.get("talos_left_arm")
+    a_true = jc.perturb(rb, {"length": 1e-3, "angle": 2e-3, "gain": 1e-3}, seed=0)
+    d = np.zeros(9)
+    d[:6] = [2.0, -3.0, 1.5, 0.4, -1.2, 2.1]
+    data = jc.simulate(rb, a_true, jc.random_configurations(rb, 20, seed=1), "position", noise={"position": 5e-5},
+                       device_params=d, seed=0)
+    fit = jc.identify(rb, data, sigma_position=5e-5)
+    assert fit.info["bias_fold_solves"] > 0 and fit.info["bias_fold_solves_unconverged"] == 0
+    assert not any("fold fits" in w for w in fit.health.warnings), fit.health.warnings
+    short = jc.identify(rb, data, sigma_position=5e-5, max_steps=3)
+    n, total = short.info["bias_fold_solves_unconverged"], short.info["bias_fold_solves"]
+    assert 0 < n <= total
+    assert any(f"fold fits of which {n} of {total} stopped unconverged" in w for w in short.health.warnings)
 
 
 def test_a_clearly_noise_dominated_unbiased_fit_is_stopped_early_with_the_same_result(monkeypatch):

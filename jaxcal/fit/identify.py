@@ -285,13 +285,13 @@ def calibrate_with_default_bias(problem: core.Problem, settings: core.Settings, 
             every_free = bias is None and base and problem.robot.closure is None and few_readings(cal)
             if every_free:  # every free parameter under the bias, where it stops chosen by k-fold (`fit.bias`)
                 cal = dataclasses.replace(cal, estimated=np.flatnonzero(problem.free))
-                schedule, scores = choose_bias(problem, cal, settings, path=PRIOR_PATH)
-                bias_info["bias_heldout"] = scores.tolist()  # NaN: a stage not run
+                schedule, scores, record = choose_bias(problem, cal, settings, path=PRIOR_PATH)
+                bias_info.update(bias_heldout=scores.tolist(), **record)  # NaN: a stage not run
             elif bias is None and problem.robot.closure is None:
                 schedule = list(ILL_CONDITIONED_BIAS)
             else:  # bias="heldout", and a closed mechanism by default: the stop chosen by k-fold held-out error
-                schedule, scores = choose_bias(problem, cal, settings)
-                bias_info["bias_heldout"] = scores.tolist()  # NaN: a stage not run
+                schedule, scores, record = choose_bias(problem, cal, settings)
+                bias_info.update(bias_heldout=scores.tolist(), **record)  # NaN: a stage not run
             bias_info.update(bias_schedule=schedule, bias_every_free=every_free)
             cal = core.calibrate(problem, settings, base=base and not every_free, bias=schedule, multistart=multistart,
                                  seed=seed, base_tol=base_tol, started=cal, progress=progress)
@@ -406,6 +406,11 @@ def identify(
     cal, bias_info = calibrate_with_default_bias(problem, settings, base=base, bias=bias, multistart=multistart,
                                                  seed=seed, base_tol=base_tol, progress=progress)
     health = assess(cal, unclosed_start=unclosed + tuple(_unclosed_excluded), sample_index=keep, settings=settings)
+    if bias_info.get("bias_fold_solves_unconverged"):
+        health = dataclasses.replace(health, warnings=health.warnings + (
+            f"the bias schedule's end was chosen by k-fold held-out error from fold fits of which "
+            f"{bias_info['bias_fold_solves_unconverged']} of {bias_info['bias_fold_solves']} stopped unconverged (raise max_steps / "
+            "--max-steps): the choice may not be the data's",))
     if robot.closure is not None and not _unclosed_excluded:
         # re-check the closure at the solution: samples that do not close there are left out and the fit repeated
         at_solution = tuple(i for i in health.unclosed if i not in unclosed)
