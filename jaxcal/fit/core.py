@@ -157,6 +157,35 @@ def predicted(robot: Robot, device: Device, a_full, q) -> np.ndarray:
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
+def _open_chain_tool(robot: Robot, a, q) -> Pose:
+    return forward(robot, a, q)
+
+
+_TOOLS: collections.OrderedDict = collections.OrderedDict()
+_TOOLS_MAX = 4  # the last tool poses evaluated, by robot and content of a and q
+compiled.register(_TOOLS.clear)
+
+
+def tool_poses(robot: Robot, a, q) -> tuple[np.ndarray, np.ndarray]:
+    """(R (N, 3, 3), p (N, 3)): the tool poses at robot parameters a and joint values q, without derivative (a closed
+    mechanism's from one closure solve, as `predicted`'s), kept by content: the start's frames-only fit and its
+    Jacobian read hold the robot at the same point."""
+    a, q = np.asarray(a, float), np.asarray(q, float)
+    key = (robot, q.shape, hashlib.blake2b(a.tobytes() + q.tobytes(), digest_size=20).digest())
+    with _CACHE_LOCK:
+        if key in _TOOLS:
+            _TOOLS.move_to_end(key)
+            return _TOOLS[key]
+    tool = _open_chain_tool(robot, a, q) if robot.closure is None else forward_with_status(robot, a, q)[0]
+    out = (np.asarray(tool.R), np.asarray(tool.p))
+    with _CACHE_LOCK:
+        _TOOLS[key] = out
+        if len(_TOOLS) > _TOOLS_MAX:
+            _TOOLS.popitem(last=False)
+    return out
+
+
+@functools.partial(jax.jit, static_argnums=(0,))
 def misfit(device: Device, read, y, w):
     """w * (measured - predicted) (N, m) from the predicted readings."""
     return jax.vmap(device.residual)(read, y) * w
@@ -203,6 +232,17 @@ class RobotDevice:
         if self.robot.closure is None:
             return None
         return self.robot.closure.presolve(self.robot, x[: self.robot.n_params], q)
+
+    def held_robot_residual_and_jacobian(self, x, tool: Pose, y, w):
+        """(r, J) of the data rows (N*m,) with the robot held, its tool poses given (`tool_poses` at the robot's
+        entries of x): J (N*m, P) has the device columns, by forward mode through the device's reading alone, and
+        zeros for the robot's. What a fit of device parameters alone needs (the start's frames-only fit, `start`):
+        on the Stanford arm, 200 positions, one evaluation ~10x cheaper than the reverse passes through the
+        kinematics (`data_residual_and_jacobian`)."""
+        nr = self.robot.n_params
+        rows = lambda d, _: misfit(self.device, jax.vmap(self.device.read, (0, None))(tool, d), y, w).reshape(-1)  # noqa: E731
+        r, J_d = residual_and_jacobian(rows, x[nr:], None)
+        return r, jnp.concatenate([jnp.zeros((r.shape[0], nr), r.dtype), J_d], axis=1)
 
     def residuals(self, x, q, y, cov, w, pre=None):
         """w * (y - read(forward(a, q), d)) (N, m); cov is ignored. With pre (`presolve` at the same x and q) a
@@ -296,8 +336,15 @@ def scaled_residual_and_jacobian(model, z, args):
     of its state and again in its loop, and the second trace reuses the first (3-D four-bar, 60 positions: tracing
     the solver 1.88 -> 1.61 s)."""
     m, a_ref, s = args["mask"], args["a_ref"], args["x_scale"]
-    x = a_ref + s * z
-    r_d, J_a = data_residual_and_jacobian(model, jnp.where(m > 0, x, a_ref), args["q"], args["y"], args["cov"], args["w"])
+    x = jnp.where(m > 0, a_ref + s * z, a_ref)
+    data = (args["q"], args["y"], args["cov"], args["w"])
+    if isinstance(model, RobotDevice) and jacobian_mode(model) == "reverse":  # `RobotDevice.held_robot_residual_and_jacobian`
+        robot_held = jnp.all(m[:model.robot.n_params] == 0)
+        tool = Pose(args["tool_R"], args["tool_p"])
+        r_d, J_a = jax.lax.cond(robot_held, lambda: model.held_robot_residual_and_jacobian(x, tool, data[1], data[3]),
+                                lambda: data_residual_and_jacobian(model, x, *data))
+    else:
+        r_d, J_a = data_residual_and_jacobian(model, x, *data)
     r_p, J_p = residual_and_jacobian(lambda u, a: prior_rows(a["a_ref"] + a["x_scale"] * u, a), z, args)
     return jnp.concatenate([r_d, r_p]), jnp.concatenate([J_a * s, J_p])
 
@@ -580,23 +627,34 @@ class Problem:
         """Weighted residuals (N, m) at the full vector x."""
         return model_residuals(self.model, x, self.q, self.y, self.cov, self.w)
 
-    def jacobian(self, x) -> np.ndarray:
+    def jacobian(self, x, columns=None) -> np.ndarray:
         """d(weighted residual)/dx (N*m, P) at the full vector x: the data rows of the Jacobian that the solver's
         executable (`evaluator`) returns after 0 iterations from x, every entry estimated at unit scale (the
         reverse-mode data Jacobian of `data_residual_and_jacobian` for open chains, forward mode through closures).
-        One compiled program for the solves and the Jacobian: on the Delta the Jacobian compiled apart took ~7 s."""
+        One compiled program for the solves and the Jacobian: on the Delta the Jacobian compiled apart took ~7 s.
+        columns: the indices whose columns are needed (default every one); where none is the robot's, the robot's
+        columns are returned as 0 (`holds_robot`: its kinematics are not differentiated)."""
         P = len(self.names)
-        args = self.solver_arrays(x, np.ones(P), self.w, 0.0, np.ones(P))
+        mask = np.ones(P)
+        if columns is not None:
+            mask = np.zeros(P)
+            mask[np.asarray(columns, int)] = 1.0
+        args = self.solver_arrays(x, mask, self.w, 0.0, np.ones(P))
         exe, _ = evaluator(self, args)
         J = exe(np.asarray(x, np.float64), args, step_limit(0))[6]
         return np.asarray(J)[:self.w.size]
 
     def solver_arrays(self, ref, mask, w, mu, scale) -> dict:
         """The solver's arguments: prior ref (P,), estimated mask (P,), data weights w (N, m), bias mu (a number or
-        (P,)), unit of z per entry scale (P,) (`stacked_scaled`), with the problem's data and bounds."""
+        (P,)), unit of z per entry scale (P,) (`stacked_scaled`), with the problem's data and bounds, and the tool
+        poses tool_R (N, 3, 3), tool_p (N, 3) at ref's robot entries where the mask holds the robot (`holds_robot`:
+        `RobotDevice.held_robot_residual_and_jacobian` reads them; zeros, unread, otherwise)."""
         f64 = functools.partial(np.asarray, dtype=np.float64)  # numpy: a compiled call takes them as they are
+        n = len(self.q)
+        tool_R, tool_p = (tool_poses(self.robot, np.asarray(ref, float)[:self.robot.n_params], self.q) if self.holds_robot(mask)
+                          else (np.zeros((n, 3, 3)), np.zeros((n, 3))))
         return dict(a_ref=f64(ref), mask=f64(mask), q=f64(self.q), y=f64(self.y), cov=f64(self.cov), w=f64(w), mu=f64(mu),
-                    x_scale=f64(scale), lb=f64(self.lb), ub=f64(self.ub))
+                    x_scale=f64(scale), lb=f64(self.lb), ub=f64(self.ub), tool_R=f64(tool_R), tool_p=f64(tool_p))
 
     def args(self, estimated, mu, ref) -> dict:
         """Solver arguments: estimate the indices `estimated`, bias mu (a number, or one per entry) toward
@@ -616,6 +674,9 @@ class Problem:
         weights (B, N, m) (folds as weight masks), each scaled as `args` scales one; "a_ref" and "w" carry the
         batch axis (`solve_batch(..., batched=("x0", "a_ref", "w"))`)."""
         each = [self.with_weights(w).args(estimated, mu, ref) for ref, w in zip(refs, weights)]
+        nr = self.robot.n_params
+        if self.holds_robot(each[0]["mask"]) and any(not np.array_equal(a["a_ref"][:nr], each[0]["a_ref"][:nr]) for a in each):
+            raise ValueError("a batch that holds the robot shares one set of tool poses: its priors must agree on the robot")
         return dict(each[0], a_ref=jnp.stack([a["a_ref"] for a in each]), w=jnp.stack([a["w"] for a in each]))
 
     def basis_args(self, columns, K: int, mu, refs, weights) -> dict:
@@ -629,6 +690,12 @@ class Problem:
         mu_k[:len(cols)] = mu
         args = self.batch_args(cols, 0.0, refs, weights)
         return dict(args, S=jnp.asarray(S), mask=jnp.asarray(mask), mu=jnp.asarray(mu_k))
+
+    def holds_robot(self, mask) -> bool:
+        """The solver's Jacobian for the estimated mask (P,) leaves the robot's columns 0: no robot entry is estimated
+        and the model is the robot measured by a device (`RobotDevice.held_robot_residual_and_jacobian`)."""
+        return (isinstance(self.model, RobotDevice) and jacobian_mode(self.model) == "reverse"
+                and not np.any(np.asarray(mask)[:self.robot.n_params] > 0))
 
     def cost(self, a_full) -> float:
         return float(np.sum(self.residuals(a_full) ** 2))
@@ -743,7 +810,7 @@ class Solution:
     """One solver run: the full vector, whether the solver met its tolerance, its steps and final cost; history:
     the cost at the start and after each step (the core's LM; empty for the optimistix solvers); estimated: the
     indices it moved; J: the data rows' Jacobian at x, every column (`Problem.jacobian`), read off the core's LM
-    (None for the other solvers and for a batch)."""
+    (None for the other solvers, for a batch, and for a fit of device parameters alone: `Problem.holds_robot`)."""
 
     x: np.ndarray
     converged: bool
@@ -779,8 +846,8 @@ def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, 
     x, ok, steps, cost, history, _, J_z = exe(x0, args, step_limit(cap))
     x = np.where(np.asarray(args["mask"]) > 0, np.asarray(x), np.asarray(ref))
     history = np.asarray(history)
-    return Solution(x, bool(ok), int(steps), float(cost), dt, history[np.isfinite(history)], np.asarray(estimated, int),
-                    solver_jacobian(problem, J_z, args))
+    J = None if problem.holds_robot(args["mask"]) else solver_jacobian(problem, J_z, args)  # the robot's columns 0
+    return Solution(x, bool(ok), int(steps), float(cost), dt, history[np.isfinite(history)], np.asarray(estimated, int), J)
 
 
 def solve_batch(problem: Problem, x0s, args, settings: Settings, batched) -> tuple:
@@ -805,7 +872,7 @@ def frames_estimated(problem: Problem, x) -> np.ndarray:
     cand = np.flatnonzero(problem.free[nr:]) + nr
     if not cand.size:
         return cand
-    J = problem.jacobian(x)[:, cand]
+    J = problem.jacobian(x, cand)[:, cand]
     bs = base_set(J * problem.x_scale[cand], problem.priority[cand], c=START_TOL / np.finfo(float).eps)
     return np.sort(cand[bs.independent])
 
@@ -828,12 +895,15 @@ def start(problem: Problem, settings: Settings) -> tuple[np.ndarray, Solution | 
 
 def residuals_in_background(problem: Problem) -> threading.Thread:
     """A started thread that evaluates the residuals at the prior (`Problem.residuals`, whose readings
-    `predicted` keeps), the start's first evaluation: their programs compile while the solver's does (XLA
-    compiles outside the GIL). An error there is left to the start, which evaluates the same point again."""
+    `predicted` keeps), the start's first evaluation, and the tool poses there (`tool_poses`, which the frames-only
+    fit reads): their programs compile while the solver's does (XLA compiles outside the GIL). An error there is
+    left to the start, which evaluates the same points again."""
 
     def evaluate():
         with contextlib.suppress(Exception):
             problem.residuals(problem.a_ref)
+            if isinstance(problem.model, RobotDevice):  # the start's frames-only fit holds the robot there
+                tool_poses(problem.robot, problem.a_ref[:problem.robot.n_params], problem.q)
 
     thread = threading.Thread(target=evaluate, name="jaxcal-prior-residuals", daemon=True)
     thread.start()
