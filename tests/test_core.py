@@ -296,7 +296,7 @@ def test_jacobian_from_the_solver_program_is_jacfwd_and_predicted_is_readings(na
     content). A solve of a third of the entries returns the Jacobian of every
     column at its end (`Solution.J`, which `calibrate` uses instead of running the program again): equal to
     `Problem.jacobian` there (relative 1e-12). With the robot held, the program's cheaper device-only Jacobian
-    (`RobotDevice.held_robot_residual_and_jacobian`) gives the same device columns, residual and fitted frame."""
+    (`RobotDevice.residual_and_jacobian` with robot_held) gives the same device columns, residual and fitted frame."""
     import jax
 
     rb = jc.robots.get(name)
@@ -330,7 +330,7 @@ def test_jacobian_from_the_solver_program_is_jacfwd_and_predicted_is_readings(na
     err = np.max(np.abs(sol.J - J_end)) / np.max(np.abs(J_end))
     assert err < 1e-12, err
     # the robot held (no robot entry estimated): the same program reads the device columns off the given tool poses
-    # (`RobotDevice.held_robot_residual_and_jacobian`), equal to jacfwd's (measured 8.7e-17 / 7.4e-17), the robot's 0, and the
+    # (`RobotDevice.residual_and_jacobian` with robot_held), equal to jacfwd's (measured 5.2e-16 / 4.4e-16), the robot's 0, and the
     # residual r the same as with the kinematics differentiated
     dev_cols = np.arange(rb.n_params, len(a))
     J_held = problem.jacobian(a, dev_cols)
@@ -341,7 +341,7 @@ def test_jacobian_from_the_solver_program_is_jacfwd_and_predicted_is_readings(na
     r_held, r_full = exe(a, held_args, core.step_limit(0))[5], exe(a, args, core.step_limit(0))[5]
     np.testing.assert_allclose(r_held, r_full, rtol=0, atol=1e-12 * np.max(np.abs(r_full)))
     # a fit of device entries alone returns no Jacobian (its robot columns are 0; `calibrate` reads every column
-    # again), and reaches the optimum that optimistix's LM (the kinematics differentiated) reaches (measured 1.6e-11 / 1e-13)
+    # again), and reaches the optimum that optimistix's LM (the kinematics differentiated) reaches (measured 1.6e-11 / 5.1e-13)
     start = a.copy()
     start[dev_cols[:3]] += 0.02
     mine = core.solve(problem, start, dev_cols, core.Settings())

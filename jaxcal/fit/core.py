@@ -157,35 +157,6 @@ def predicted(robot: Robot, device: Device, a_full, q) -> np.ndarray:
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
-def _open_chain_tool(robot: Robot, a, q) -> Pose:
-    return forward(robot, a, q)
-
-
-_TOOLS: collections.OrderedDict = collections.OrderedDict()
-_TOOLS_MAX = 4  # the last tool poses evaluated, by robot and content of a and q
-compiled.register(_TOOLS.clear)
-
-
-def tool_poses(robot: Robot, a, q) -> tuple[np.ndarray, np.ndarray]:
-    """(R (N, 3, 3), p (N, 3)): the tool poses at robot parameters a and joint values q, without derivative (a closed
-    mechanism's from one closure solve, as `predicted`'s), kept by content: the start's frames-only fit and its
-    Jacobian read hold the robot at the same point."""
-    a, q = np.asarray(a, float), np.asarray(q, float)
-    key = (robot, q.shape, hashlib.blake2b(a.tobytes() + q.tobytes(), digest_size=20).digest())
-    with _CACHE_LOCK:
-        if key in _TOOLS:
-            _TOOLS.move_to_end(key)
-            return _TOOLS[key]
-    tool = _open_chain_tool(robot, a, q) if robot.closure is None else forward_with_status(robot, a, q)[0]
-    out = (np.asarray(tool.R), np.asarray(tool.p))
-    with _CACHE_LOCK:
-        _TOOLS[key] = out
-        if len(_TOOLS) > _TOOLS_MAX:
-            _TOOLS.popitem(last=False)
-    return out
-
-
-@functools.partial(jax.jit, static_argnums=(0,))
 def misfit(device: Device, read, y, w):
     """w * (measured - predicted) (N, m) from the predicted readings."""
     return jax.vmap(device.residual)(read, y) * w
@@ -233,16 +204,36 @@ class RobotDevice:
             return None
         return self.robot.closure.presolve(self.robot, x[: self.robot.n_params], q)
 
-    def held_robot_residual_and_jacobian(self, x, tool: Pose, y, w):
-        """(r, J) of the data rows (N*m,) with the robot held, its tool poses given (`tool_poses` at the robot's
-        entries of x): J (N*m, P) has the device columns, by forward mode through the device's reading alone, and
-        zeros for the robot's. What a fit of device parameters alone needs (the start's frames-only fit, `start`):
-        on the Stanford arm, 200 positions, one evaluation ~10x cheaper than the reverse passes through the
-        kinematics (`data_residual_and_jacobian`)."""
+    def residual_and_jacobian(self, x, q, y, w, robot_held=False):
+        """(r, J): the data rows (N*m,) at x and their Jacobian (N*m, P), each sample in reverse mode in two stages:
+        its tool pose T = forward(a, q) (a closed mechanism's from the closure solved for the batch, `presolve`), then
+        the reading's m vector-Jacobian products give dr/dd and the cotangents of T, which the kinematics' pullback
+        takes to dr/da. robot_held (traced): the robot's columns are 0 and that pullback, most of the work, is not
+        run: what a fit of device parameters alone needs (the start's frames-only fit; Stanford arm, 200 positions:
+        one evaluation ~3x cheaper). The same arithmetic as `data_residual_and_jacobian` of the whole residual."""
         nr = self.robot.n_params
-        rows = lambda d, _: misfit(self.device, jax.vmap(self.device.read, (0, None))(tool, d), y, w).reshape(-1)  # noqa: E731
-        r, J_d = residual_and_jacobian(rows, x[nr:], None)
-        return r, jnp.concatenate([jnp.zeros((r.shape[0], nr), r.dtype), J_d], axis=1)
+        a, d = x[:nr], x[nr:]
+        pre = self.presolve(x, q)
+        closure = self.robot.closure
+
+        def tool_of(a_r, qi, pi):
+            if closure is None:
+                return forward(self.robot, a_r, qi[None])
+            return closure.forward_presolved(self.robot, a_r, qi[None], jax.tree_util.tree_map(lambda v: v[None], pi))
+
+        def one(sample):
+            qi, yi, wi, pi = sample
+            tool, kinematics_pullback = jax.vjp(lambda a_r: tool_of(a_r, qi, pi), a)
+            r, reading_pullback = jax.vjp(
+                lambda T, dd: misfit(self.device, jax.vmap(self.device.read, (0, None))(T, dd), yi[None], wi[None]).reshape(-1),
+                tool, d)
+            tool_bar, J_d = jax.vmap(reading_pullback)(jnp.eye(r.shape[0], dtype=r.dtype))
+            J_a = jax.lax.cond(robot_held, lambda: jnp.zeros((r.shape[0], nr), r.dtype),
+                               lambda: jax.vmap(kinematics_pullback)(tool_bar)[0])
+            return r, jnp.concatenate([J_a, J_d], axis=1)
+
+        r, J = jax.lax.map(one, (q, y, w, pre), batch_size=JACOBIAN_CHUNK)
+        return r.reshape(-1), J.reshape(-1, x.shape[0])
 
     def residuals(self, x, q, y, cov, w, pre=None):
         """w * (y - read(forward(a, q), d)) (N, m); cov is ignored. With pre (`presolve` at the same x and q) a
@@ -337,14 +328,10 @@ def scaled_residual_and_jacobian(model, z, args):
     the solver 1.88 -> 1.61 s)."""
     m, a_ref, s = args["mask"], args["a_ref"], args["x_scale"]
     x = jnp.where(m > 0, a_ref + s * z, a_ref)
-    data = (args["q"], args["y"], args["cov"], args["w"])
-    if isinstance(model, RobotDevice) and jacobian_mode(model) == "reverse":  # `RobotDevice.held_robot_residual_and_jacobian`
-        robot_held = jnp.all(m[:model.robot.n_params] == 0)
-        tool = Pose(args["tool_R"], args["tool_p"])
-        r_d, J_a = jax.lax.cond(robot_held, lambda: model.held_robot_residual_and_jacobian(x, tool, data[1], data[3]),
-                                lambda: data_residual_and_jacobian(model, x, *data))
+    if isinstance(model, RobotDevice) and jacobian_mode(model) == "reverse":  # no robot entry estimated: none differentiated
+        r_d, J_a = model.residual_and_jacobian(x, args["q"], args["y"], args["w"], jnp.all(m[:model.robot.n_params] == 0))
     else:
-        r_d, J_a = data_residual_and_jacobian(model, x, *data)
+        r_d, J_a = data_residual_and_jacobian(model, x, args["q"], args["y"], args["cov"], args["w"])
     r_p, J_p = residual_and_jacobian(lambda u, a: prior_rows(a["a_ref"] + a["x_scale"] * u, a), z, args)
     return jnp.concatenate([r_d, r_p]), jnp.concatenate([J_a * s, J_p])
 
@@ -633,7 +620,7 @@ class Problem:
         reverse-mode data Jacobian of `data_residual_and_jacobian` for open chains, forward mode through closures).
         One compiled program for the solves and the Jacobian: on the Delta the Jacobian compiled apart took ~7 s.
         columns: the indices whose columns are needed (default every one); where none is the robot's, the robot's
-        columns are returned as 0 (`holds_robot`: its kinematics are not differentiated)."""
+        columns are returned as 0 (`holds_robot`: the kinematics are not differentiated)."""
         P = len(self.names)
         mask = np.ones(P)
         if columns is not None:
@@ -646,15 +633,10 @@ class Problem:
 
     def solver_arrays(self, ref, mask, w, mu, scale) -> dict:
         """The solver's arguments: prior ref (P,), estimated mask (P,), data weights w (N, m), bias mu (a number or
-        (P,)), unit of z per entry scale (P,) (`stacked_scaled`), with the problem's data and bounds, and the tool
-        poses tool_R (N, 3, 3), tool_p (N, 3) at ref's robot entries where the mask holds the robot (`holds_robot`:
-        `RobotDevice.held_robot_residual_and_jacobian` reads them; zeros, unread, otherwise)."""
+        (P,)), unit of z per entry scale (P,) (`stacked_scaled`), with the problem's data and bounds."""
         f64 = functools.partial(np.asarray, dtype=np.float64)  # numpy: a compiled call takes them as they are
-        n = len(self.q)
-        tool_R, tool_p = (tool_poses(self.robot, np.asarray(ref, float)[:self.robot.n_params], self.q) if self.holds_robot(mask)
-                          else (np.zeros((n, 3, 3)), np.zeros((n, 3))))
         return dict(a_ref=f64(ref), mask=f64(mask), q=f64(self.q), y=f64(self.y), cov=f64(self.cov), w=f64(w), mu=f64(mu),
-                    x_scale=f64(scale), lb=f64(self.lb), ub=f64(self.ub), tool_R=f64(tool_R), tool_p=f64(tool_p))
+                    x_scale=f64(scale), lb=f64(self.lb), ub=f64(self.ub))
 
     def args(self, estimated, mu, ref) -> dict:
         """Solver arguments: estimate the indices `estimated`, bias mu (a number, or one per entry) toward
@@ -674,9 +656,6 @@ class Problem:
         weights (B, N, m) (folds as weight masks), each scaled as `args` scales one; "a_ref" and "w" carry the
         batch axis (`solve_batch(..., batched=("x0", "a_ref", "w"))`)."""
         each = [self.with_weights(w).args(estimated, mu, ref) for ref, w in zip(refs, weights)]
-        nr = self.robot.n_params
-        if self.holds_robot(each[0]["mask"]) and any(not np.array_equal(a["a_ref"][:nr], each[0]["a_ref"][:nr]) for a in each):
-            raise ValueError("a batch that holds the robot shares one set of tool poses: its priors must agree on the robot")
         return dict(each[0], a_ref=jnp.stack([a["a_ref"] for a in each]), w=jnp.stack([a["w"] for a in each]))
 
     def basis_args(self, columns, K: int, mu, refs, weights) -> dict:
@@ -693,7 +672,7 @@ class Problem:
 
     def holds_robot(self, mask) -> bool:
         """The solver's Jacobian for the estimated mask (P,) leaves the robot's columns 0: no robot entry is estimated
-        and the model is the robot measured by a device (`RobotDevice.held_robot_residual_and_jacobian`)."""
+        and the model is the robot measured by a device (`RobotDevice.residual_and_jacobian`'s robot_held)."""
         return (isinstance(self.model, RobotDevice) and jacobian_mode(self.model) == "reverse"
                 and not np.any(np.asarray(mask)[:self.robot.n_params] > 0))
 
@@ -895,15 +874,12 @@ def start(problem: Problem, settings: Settings) -> tuple[np.ndarray, Solution | 
 
 def residuals_in_background(problem: Problem) -> threading.Thread:
     """A started thread that evaluates the residuals at the prior (`Problem.residuals`, whose readings
-    `predicted` keeps), the start's first evaluation, and the tool poses there (`tool_poses`, which the frames-only
-    fit reads): their programs compile while the solver's does (XLA compiles outside the GIL). An error there is
-    left to the start, which evaluates the same points again."""
+    `predicted` keeps), the start's first evaluation: their programs compile while the solver's does (XLA
+    compiles outside the GIL). An error there is left to the start, which evaluates the same point again."""
 
     def evaluate():
         with contextlib.suppress(Exception):
             problem.residuals(problem.a_ref)
-            if isinstance(problem.model, RobotDevice):  # the start's frames-only fit holds the robot there
-                tool_poses(problem.robot, problem.a_ref[:problem.robot.n_params], problem.q)
 
     thread = threading.Thread(target=evaluate, name="jaxcal-prior-residuals", daemon=True)
     thread.start()
