@@ -118,6 +118,49 @@ def test_gap_baseline_equals_identify_on_each_fold(stanford):
         assert abs(rms_fold - fit.rms_after) <= 1e-9 * fit.rms_after
 
 
+def test_a_robot_that_frees_few_entries_steps_on_their_columns_alone(stanford, monkeypatch):
+    """Far frame, a robot that frees 12 of its 43 parameters (21 of 52 entries with the device's): `Problem.step_width`
+    is 24, so every solve factors 24 columns (`lm.step_columns`), not 52 with 31 zeroed, the frames-only fit of
+    `free=()` in the same program. The fit is the one with the step width off: same estimate to 1e-9 of a typical
+    size, same RMS to 1e-9 relative, iterations within one (the last, at round-off)."""
+    rb, a_true = stanford
+    few = rb.with_free(rb.names[:12])
+    train, _ = simulated(rb, a_true, "position", 200, seed=2).split(0.75, seed=0)
+    widths = []
+    spied = core.compiled_model_solver
+    monkeypatch.setattr(core, "compiled_model_solver", lambda *a, **k: widths.append(k.get("width")) or spied(*a, **k))
+    narrow = jc.identify(few, train, sigma_position=NOISE)
+    assert jc.identify(few, train, free=(), sigma_position=NOISE).converged
+    assert set(widths) == {24}
+    monkeypatch.setattr(core.Problem, "step_width", property(lambda self: None))
+    widths.clear()
+    wide = jc.identify(few, train, sigma_position=NOISE)
+    assert set(widths) == {None}
+    assert narrow.converged and wide.converged and abs(narrow.iterations - wide.iterations) <= 1
+    assert narrow.estimated == wide.estimated and set(few.names[:12]) & set(narrow.estimated)  # robot entries moved
+    scale = core.x_scale(tuple(rb.units) + tuple(train.device.units))
+    assert np.max(np.abs(np.asarray(narrow.a_full) - np.asarray(wide.a_full)) / scale) < 1e-9
+    assert abs(narrow.rms_after - wide.rms_after) <= 1e-9 * wide.rms_after
+
+
+def test_a_step_width_is_used_only_where_it_holds_every_estimated_entry(stanford):
+    """`Problem.width_for`: the width of a robot that frees 12 entries (24 with the device's 9), for a mask of those
+    21 (or a batch of such masks); None for a mask that estimates more than the width (a caller freeing entries the
+    robot holds by default), so that no estimated entry is left out of the steps; None for a robot that frees most."""
+    rb, a_true = stanford
+    data = simulated(rb, a_true, "position", 12, seed=3)
+    P = rb.n_params + data.device.n_params
+    free = np.zeros(P, bool)
+    free[:12] = free[rb.n_params:] = True
+    problem = core.make_problem(rb.with_free(rb.names[:12]), data.device, data.q, data.y, weights=np.ones(3), free=free,
+                                a_ref=np.zeros(P))
+    assert problem.step_width == 24
+    assert problem.width_for(free) == 24 and problem.width_for(np.stack([free, free])) == 24
+    assert problem.width_for(np.ones(P)) is None
+    wide = core.make_problem(rb, data.device, data.q, data.y, weights=np.ones(3), free=free, a_ref=np.zeros(P))
+    assert wide.step_width is None
+
+
 def test_unknown_solver_name_and_solver_objects():
     """One name -> solver map; an optimistix solver object is accepted as it is."""
     import optimistix as optx

@@ -140,3 +140,28 @@ def test_geodesic_acceleration_follows_the_curved_valley(monkeypatch):
     np.testing.assert_allclose(np.asarray(accelerated.z), [1.0, 1.0], atol=1e-9)
     np.testing.assert_allclose(np.asarray(plain.z), [1.0, 1.0], atol=1e-9)
     assert int(accelerated.steps) < int(plain.steps), (int(accelerated.steps), int(plain.steps))
+
+
+def test_a_step_on_the_free_columns_alone_is_the_masked_step():
+    """`lm.step_columns` (width): the damped step solved on the free unknowns' columns gathered (with one zero padding
+    column) is the step solved on every column with the others zeroed: Rosenbrock's valley (wall 100) embedded in five
+    unknowns of which two move and three are held, in scattered places, the held ones entering the residual too. The
+    same iterations (accelerated ones among them; the last, at round-off, may differ by one), the same estimate to
+    1e-12, held entries untouched, J with every column."""
+    def embedded(z, args):
+        return jnp.concatenate([rosenbrock(z[jnp.array([3, 1])], args), 0.1 * (z[jnp.array([0, 2, 4])] - 0.5) * z[1]])
+
+    z0 = jnp.array([0.2, 1.0, -0.3, -1.2, 0.7])
+    free = jnp.array([0.0, 1.0, 0.0, 1.0, 0.0])
+    masked = jax.jit(lambda z: lm.least_squares(embedded, z, 100.0, max_steps=500, rtol=1e-10, atol=1e-12, free=free))(z0)
+    idx, valid = lm.step_columns(free, 3)
+    assert np.asarray(idx)[:2].tolist() == [1, 3] and np.asarray(valid).tolist() == [True, True, False]
+    for width in (2, 3):
+        gathered = jax.jit(lambda z: lm.least_squares(embedded, z, 100.0, max_steps=500, rtol=1e-10, atol=1e-12,
+                                                      free=free, width=width))(z0)  # noqa: B023
+        assert bool(gathered.converged) and abs(int(gathered.steps) - int(masked.steps)) <= 1  # the last: round-off
+        assert int(masked.steps) > lm.ACCEL_AFTER  # accelerated steps taken
+        np.testing.assert_allclose(np.asarray(gathered.z), np.asarray(masked.z), rtol=0, atol=1e-12)
+        assert np.asarray(gathered.z)[[0, 2, 4]].tolist() == np.asarray(z0)[[0, 2, 4]].tolist()
+        np.testing.assert_allclose(np.asarray(gathered.J), np.asarray(jax.jacfwd(embedded)(gathered.z, 100.0)), rtol=1e-14,
+                                   atol=1e-14)

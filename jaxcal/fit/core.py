@@ -87,6 +87,7 @@ POLISH_F = 4.0
 NO_EFFECT_AT_SOLUTION = 1e-10  # a held column below this share of the largest (typical-size units) has no effect at x
 # Samples per vmapped chunk of the reverse-mode data Jacobian (`data_residual_and_jacobian`).
 JACOBIAN_CHUNK = 2048
+STEP_WIDTH_ROUND = 8  # `Problem.step_width` is a multiple of this: problems that free a few entries more or less share a program
 # Readings whose best similarity registration onto the model needs one of these scales are in another unit.
 UNIT_SCALES = {"mm": 1e-3, "cm": 1e-2, "inch": 0.0254}
 
@@ -396,13 +397,13 @@ def solver_settings(solver="lm", max_steps: int | None = None, rtol: float | Non
     return dataclasses.replace(Settings(), **{k: v for k, v in given.items() if v is not None})
 
 
-def _solve_one(x0, args, limit, model, settings: Settings):
+def _solve_one(x0, args, limit, model, settings: Settings, width: int | None = None):
     """One LM run from x0, at most min(settings.max_steps, limit) iterations: in z = (x - a_ref) / x_scale
     (`stacked_scaled`), or in the basis args["S"] when args has one (`stacked_basis`). Returns (x, converged,
     steps, final cost, cost history, r, J): the history is `lm.LMResult.history` for the core's LM, empty (shape
     (0,)) for the optimistix solvers; r and J are the stacked residual and its Jacobian in z at x (the core's LM;
     empty for the others; out of a basis, every column, the entries not estimated too), which `Problem.jacobian`
-    reads with limit 0 and `solve` after a fit."""
+    reads with limit 0 and `solve` after a fit. width: the core LM's step width (`Problem.step_width`)."""
     slv = make_solver(settings.solver, settings.rtol, settings.atol)
     reverse = jacobian_mode(model) == "reverse"
     if "S" in args:
@@ -416,7 +417,7 @@ def _solve_one(x0, args, limit, model, settings: Settings):
         z0 = (x0 - args["a_ref"]) / args["x_scale"]
         to_x = lambda z: args["a_ref"] + args["x_scale"] * z  # noqa: E731
     if isinstance(slv, LevenbergMarquardt):
-        res = slv(fn, z0, args, settings.max_steps, jac, limit, None if "S" in args else args["mask"])
+        res = slv(fn, z0, args, settings.max_steps, jac, limit, None if "S" in args else args["mask"], width)
         return to_x(res.z), res.converged, res.steps, res.cost, res.history, res.r, res.J
     sol = optx.least_squares(fn, slv, z0, args, max_steps=settings.max_steps, throw=False)
     empty = jnp.zeros(0, z0.dtype)
@@ -424,11 +425,11 @@ def _solve_one(x0, args, limit, model, settings: Settings):
             empty, empty, empty)
 
 
-@functools.partial(jax.jit, static_argnames=("model", "settings", "batched"))
-def _solve_jit(x0, args, limit, *, model, settings, batched):
+@functools.partial(jax.jit, static_argnames=("model", "settings", "batched", "width"))
+def _solve_jit(x0, args, limit, *, model, settings, batched, width=None):
     """One solve (x, converged, steps, cost, history, r, J: `_solve_one`), or a vmapped batch without r and J
     (their size grows with the batch): `batched` names the entries of args (and "x0") with a leading batch axis."""
-    one = functools.partial(_solve_one, limit=limit, model=model, settings=settings)
+    one = functools.partial(_solve_one, limit=limit, model=model, settings=settings, width=width)
     if not batched:
         return one(x0, args)
     axes = {k: (0 if k in batched else None) for k in args}
@@ -466,20 +467,21 @@ _COMPILED_MAX = 64  # compiled solvers kept per process (least recently used fir
 compiled.register(_COMPILED.clear)
 
 
-def compiled_model_solver(x0, args, model, settings: Settings, batched=()):
+def compiled_model_solver(x0, args, model, settings: Settings, batched=(), width: int | None = None):
     """(executable, seconds spent compiling: 0 when reused), called as exe(x0, args, limit) with limit the cap
-    on iterations (`step_limit`). One compile per residual model, settings, argument shapes and placement (arrays
+    on iterations (`step_limit`); width: the LM's step width (`Problem.step_width`; None: every column). One
+    compile per residual model, settings, step width, argument shapes and placement (arrays
     committed to another JAX device get their own executable); at most _COMPILED_MAX are kept (robots hash by
     identity, so the cache is bounded). With a compilation-cache folder in use, the lowered program is kept
     there too (`jaxcal.exported`): a later process skips tracing it."""
     placed = exported.placements((x0, args))
-    key = (model, settings, tuple(batched), exported.signature((x0, args)), placed, exported.lowering_config())
+    key = (model, settings, tuple(batched), exported.signature((x0, args)), placed, exported.lowering_config(), width)
     with _CACHE_LOCK:
         if key in _COMPILED:
             _COMPILED.move_to_end(key)
             return _COMPILED[key], 0.0
     t = time.perf_counter()
-    static = dict(model=model, settings=settings, batched=tuple(batched))
+    static = dict(model=model, settings=settings, batched=tuple(batched), width=width)
     if placed:  # committed to another device: lowered for that placement, not kept across processes
         exe = compile_solver(_solve_jit.lower(x0, args, step_limit(0), **static), True)
     else:
@@ -498,16 +500,16 @@ def evaluator(problem: "Problem", args, settings: Settings | None = None):
     tolerances, else `Settings()`'s."""
     x0 = np.zeros(len(problem.names))
     if settings is not None and isinstance(make_solver(settings.solver, settings.rtol, settings.atol), LevenbergMarquardt):
-        return compiled_model_solver(x0, args, problem.model, settings)
+        return compiled_model_solver(x0, args, problem.model, settings, width=problem.step_width)
     shapes, config = exported.signature((x0, args)), exported.lowering_config()
     with _CACHE_LOCK:
         kept = list(reversed(_COMPILED.items()))
     for key, exe in kept:
-        model, done, batched, done_shapes, placed, done_config = key
+        model, done, batched, done_shapes, placed, done_config, width = key
         if (model == problem.model and not batched and done_shapes == shapes and not placed and done_config == config
-                and isinstance(make_solver(done.solver, done.rtol, done.atol), LevenbergMarquardt)):
+                and width == problem.step_width and isinstance(make_solver(done.solver, done.rtol, done.atol), LevenbergMarquardt)):
             return exe, 0.0
-    return compiled_model_solver(x0, args, problem.model, Settings())
+    return compiled_model_solver(x0, args, problem.model, Settings(), width=problem.step_width)
 
 
 def compiled_solver(x0, args, robot, device, settings: Settings, batched=()):
@@ -670,6 +672,25 @@ class Problem:
         args = self.batch_args(cols, 0.0, refs, weights)
         return dict(args, S=jnp.asarray(S), mask=jnp.asarray(mask), mu=jnp.asarray(mu_k))
 
+    @property
+    def step_width(self) -> int | None:
+        """The core LM's step width for this problem's solves (`lm.step_columns`): the entries the robot frees by
+        default (`Robot.free_mask`) and the device's, rounded up to a multiple of STEP_WIDTH_ROUND, when that leaves
+        out at least a third of the columns (closed mechanisms: the Delta frees 83 of 166, the Kiwibot 48 of 94), else
+        None (every column, the others masked). A property of the robot and device, not of the call's free entries:
+        every solve and Jacobian read of the pair (the frames-only fits of `free=()` too) shares one program."""
+        if not isinstance(self.model, RobotDevice):
+            return None
+        n_free, P = int(np.sum(self.robot.free_mask)) + self.device.n_params, len(self.names)
+        width = -(-n_free // STEP_WIDTH_ROUND) * STEP_WIDTH_ROUND
+        return width if 0 < width and 3 * width <= 2 * P else None
+
+    def width_for(self, mask) -> int | None:
+        """`step_width` when it holds every entry the mask (P,) or masks (B, P) estimate, else None."""
+        width = self.step_width
+        most = int(np.max(np.sum(np.atleast_2d(np.asarray(mask)) > 0, axis=-1)))
+        return width if width is not None and most <= width else None
+
     def holds_robot(self, mask) -> bool:
         """The solver's Jacobian for the estimated mask (P,) leaves the robot's columns 0: no robot entry is estimated
         and the model is the robot measured by a device (`RobotDevice.residual_and_jacobian`'s robot_held)."""
@@ -820,7 +841,7 @@ def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, 
     ref = x0 if ref is None else ref
     args = problem.args(estimated, mu, ref)
     x0 = np.asarray(x0, np.float64)
-    exe, dt = compiled_model_solver(x0, args, problem.model, settings)
+    exe, dt = compiled_model_solver(x0, args, problem.model, settings, width=problem.width_for(args["mask"]))
     cap = settings.max_steps if limit is None else min(limit, settings.max_steps)
     x, ok, steps, cost, history, _, J_z = exe(x0, args, step_limit(cap))
     x = np.where(np.asarray(args["mask"]) > 0, np.asarray(x), np.asarray(ref))
@@ -833,7 +854,7 @@ def solve_batch(problem: Problem, x0s, args, settings: Settings, batched) -> tup
     """A vmapped batch of solves of one problem's structure: `batched` names the leading-axis entries of
     args (and "x0" for a batch of starts; `Problem.batch_args` for folds with their own priors).
     Returns (x (B, P), ok (B,), steps (B,), cost (B,), compile_s)."""
-    exe, dt = compiled_model_solver(x0s, args, problem.model, settings, batched)
+    exe, dt = compiled_model_solver(x0s, args, problem.model, settings, batched, problem.width_for(args["mask"]))
     x, ok, steps, cost, _ = exe(x0s, args, step_limit(settings.max_steps))
     return np.asarray(x), np.asarray(ok), np.asarray(steps), np.asarray(cost), dt
 
