@@ -53,9 +53,9 @@ def base_set(W, priority, c: float | None = None) -> BaseSet:
     independent = order[keep]
     dependent_pos = np.flatnonzero(~keep & ~zero)
     regrouped = order[dependent_pos]
-    if regrouped.size and independent.size:
-        W1 = W[:, independent]
-        beta = np.linalg.lstsq(W1, W[:, regrouped], rcond=None)[0]
+    if regrouped.size and independent.size:  # W = Q R with Q's columns orthonormal: solved on R's rows (eq 37)
+        Rn = R[:min(R.shape)]
+        beta = np.linalg.lstsq(Rn[:, keep], Rn[:, dependent_pos], rcond=None)[0]
     else:
         beta = np.zeros((independent.size, regrouped.size))
     return BaseSet(independent, order[zero], regrouped, beta, float(tau), diag, order)
