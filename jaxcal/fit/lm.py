@@ -161,20 +161,16 @@ def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first, fre
     also before it: the Jacobian is most of what XLA compiles. free: 0/1 per unknown, the columns of J the step
     uses (None: all); the state keeps every column. width (static, with free): the step is solved on that many
     columns (`step_columns`; at least the number of free unknowns), not on all of J's with the others zeroed."""
-    if free is None:
-        idx = valid = None
-        take = lambda J: J  # noqa: E731
-        spread = lambda d: d  # noqa: E731
-    elif width is None:
-        idx = valid = None
-        take = lambda J: J * free  # noqa: E731
-        spread = lambda d: d  # noqa: E731
-    else:
+    if free is not None and width is not None:  # the step's unknowns gathered, the step spread back
         idx, valid = step_columns(free, width)
         take = lambda J: J[:, idx] * valid  # noqa: E731
         spread = lambda d: jnp.zeros_like(s.z).at[idx].set(jnp.where(valid, d, 0.0))  # noqa: E731
+        last = s.last[idx]
+    else:  # every column, the held ones zeroed
+        take = (lambda J: J) if free is None else (lambda J: J * free)  # noqa: E731
+        spread = lambda d: d  # noqa: E731
+        last = s.last
     J = take(s.J)
-    last = s.last if idx is None else s.last[idx]
 
     def proposal(_):  # the damped step v and the step taken, v plus half the acceleration
         U, v = damped_factor(J, s.r, s.lam)
