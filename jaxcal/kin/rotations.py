@@ -43,8 +43,11 @@ def rot_z(angle):
 
 
 def pry_to_matrix(pry):
-    """R = Rx(pry[0]) Ry(pry[1]) Rz(pry[2])  (seed 000 eq 3.15, 3.17)."""
-    return rot_x(pry[0]) @ rot_y(pry[1]) @ rot_z(pry[2])
+    """R = Rx(pry[0]) Ry(pry[1]) Rz(pry[2])  (seed 000 eq 3.15, 3.17), multiplied out (eq 3.17)."""
+    ca, sa, cb, sb, cc, sc = (f(a) for a in (pry[0], pry[1], pry[2]) for f in (jnp.cos, jnp.sin))
+    return jnp.stack([jnp.stack([cb * cc, -cb * sc, sb]),
+                      jnp.stack([sa * sb * cc + ca * sc, ca * cc - sa * sb * sc, -sa * cb]),
+                      jnp.stack([sa * sc - ca * sb * cc, ca * sb * sc + sa * cc, ca * cb])])
 
 
 def matrix_to_pry(R):

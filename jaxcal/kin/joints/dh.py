@@ -45,7 +45,10 @@ def dh_frame(row, sigma: int, qv) -> Pose:
         theta = theta + qv[0]
     elif sigma == 1:
         d = d + qv[0]
-    R = rot_z(theta) @ rot_x(alpha) @ rot_y(beta)
+    ct, st, ca, sa, cb, sb = (f(a) for a in (theta, alpha, beta) for f in (jnp.cos, jnp.sin))
+    R = jnp.stack([jnp.stack([cb * ct - sb * st * sa, -st * ca, sb * ct + cb * st * sa]),
+                   jnp.stack([cb * st + sb * ct * sa, ct * ca, sb * st - cb * ct * sa]),
+                   jnp.stack([-sb * ca, sa, cb * ca])])
     p = jnp.stack([a * jnp.cos(theta), a * jnp.sin(theta), d])
     return Pose(R, p)
 

@@ -11,7 +11,6 @@ import jax.numpy as jnp
 
 from jaxcal.kin.convention import Convention, register
 from jaxcal.kin.pose import Pose
-from jaxcal.kin.rotations import rot_x, rot_y, rot_z
 
 MDH_ROW = ("alpha", "d", "theta", "r", "beta")
 _THETA, _R = 2, 3
@@ -24,8 +23,11 @@ def mdh_frame(row, sigma: int, qv) -> Pose:
         theta = theta + qv[0]
     elif sigma == 1:
         r = r + qv[0]
-    R = rot_y(beta) @ rot_x(alpha) @ rot_z(theta)
-    p = rot_y(beta) @ (jnp.stack([d, 0.0 * d, 0.0 * d]) + rot_x(alpha) @ jnp.stack([0.0 * r, 0.0 * r, r]))
+    ca, sa, ct, st, cb, sb = jnp.cos(alpha), jnp.sin(alpha), jnp.cos(theta), jnp.sin(theta), jnp.cos(beta), jnp.sin(beta)
+    R = jnp.stack([jnp.stack([cb * ct + sb * sa * st, sb * sa * ct - cb * st, sb * ca]),
+                   jnp.stack([ca * st, ca * ct, -sa]),
+                   jnp.stack([cb * sa * st - sb * ct, sb * st + cb * sa * ct, cb * ca])])
+    p = jnp.stack([cb * d + sb * ca * r, -sa * r, cb * ca * r - sb * d])
     return Pose(R, p)
 
 

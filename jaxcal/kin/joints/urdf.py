@@ -12,7 +12,6 @@ import numpy as np
 
 from jaxcal.kin.convention import Convention, register
 from jaxcal.kin.pose import Pose
-from jaxcal.kin.rotations import rot_x, rot_y, rot_z
 
 URDF_ROW = ("x", "y", "z", "roll", "pitch", "yaw", "offset")
 URDF_TYPES = ("revolute", "prismatic", "fixed")
@@ -20,8 +19,11 @@ _OFFSET = 6
 
 
 def rpy_to_matrix(rpy):
-    """URDF origin rotation: fixed-axis X-Y-Z, R = Rz(yaw) Ry(pitch) Rx(roll) (not the seed's PRY)."""
-    return rot_z(rpy[2]) @ rot_y(rpy[1]) @ rot_x(rpy[0])
+    """URDF origin rotation: fixed-axis X-Y-Z, R = Rz(yaw) Ry(pitch) Rx(roll) (not the seed's PRY), multiplied out."""
+    cr, sr, cp, sp, cy, sy = (f(a) for a in (rpy[0], rpy[1], rpy[2]) for f in (jnp.cos, jnp.sin))
+    return jnp.stack([jnp.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr]),
+                      jnp.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr]),
+                      jnp.stack([-sp, cp * sr, cp * cr])])
 
 
 def axis_rotation(axis, angle):
