@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import OPTIMISED
 
 import jaxcal as jc
 from jaxcal.closure import CLOSED, UNCLOSED, closure_residual, tree_frames
@@ -36,9 +37,11 @@ def rb():
 
 
 def _fns(rb):
-    res = jax.jit(jax.vmap(lambda a, qj, th: closure_residual(rb, a, qj, th), (None, 0, 0)))
-    jac = jax.jit(jax.vmap(jax.jacfwd(lambda a, qj, th: closure_residual(rb, a, qj, th), argnums=2), (None, 0, 0)))
-    tool = jax.jit(jax.vmap(lambda a, qj, th: tree_frames(rb, a, qj, th).p[rb.tip], (None, 0, 0)))
+    """The reference's compiled residual, Jacobian and tool position (run thousands of times: `OPTIMISED` code)."""
+    res = jax.jit(jax.vmap(lambda a, qj, th: closure_residual(rb, a, qj, th), (None, 0, 0)), compiler_options=OPTIMISED)
+    jac = jax.jit(jax.vmap(jax.jacfwd(lambda a, qj, th: closure_residual(rb, a, qj, th), argnums=2), (None, 0, 0)),
+                  compiler_options=OPTIMISED)
+    tool = jax.jit(jax.vmap(lambda a, qj, th: tree_frames(rb, a, qj, th).p[rb.tip], (None, 0, 0)), compiler_options=OPTIMISED)
     return res, jac, tool
 
 
