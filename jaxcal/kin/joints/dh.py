@@ -39,7 +39,7 @@ _THETA, _D = 0, 1
 def dh_frame(row, sigma: int, qv) -> Pose:
     """Standard DH T = Rz(theta) Tz(d) Tx(a) Rx(alpha) Ry(beta); qv = (joint variable,) or ().
 
-    sigma 0: theta -> theta + q; sigma 1: d -> d + q; sigma 2: no joint."""
+    sigma 0: theta -> theta + q; sigma 1: d -> d + q; sigma 2: no joint. The rotation is multiplied out (`mdh_frame`)."""
     theta, d, a, alpha, beta = row
     if sigma == 0:
         theta = theta + qv[0]

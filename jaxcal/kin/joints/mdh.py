@@ -17,7 +17,9 @@ _THETA, _R = 2, 3
 
 
 def mdh_frame(row, sigma: int, qv) -> Pose:
-    """Khalil-Kleinfinger frame with Hayati beta (seed 001 eq 3); qv = (joint variable,) or ()."""
+    """Khalil-Kleinfinger frame with Hayati beta (seed 001 eq 3); qv = (joint variable,) or (). R = Ry(beta) Rx(alpha)
+    Rz(theta) and p = Ry(beta) (d, 0, 0) + Ry(beta) Rx(alpha) (0, 0, r) are multiplied out: no 3 x 3 products, which
+    XLA:CPU runs as one kernel each (docs/benchmarks.md, 2026-11-29)."""
     alpha, d, theta, r, beta = row
     if sigma == 0:
         theta = theta + qv[0]
