@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import abc
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.kin.pose import Pose
@@ -45,6 +47,18 @@ class Convention(abc.ABC):
     @abc.abstractmethod
     def local_transform(self, row, kind, qv) -> Pose:
         """The body's frame in its parent's frame for parameter row `row` and joint values `qv`."""
+
+    def local_twists(self, row, kind, qv, frame: Pose):
+        """The twists (omega, v) (k, 6), in the parent frame, of the k = len(row) + len(qv) inputs of the local frame
+        `frame` = local_transform(row, kind, qv): (dT T^-1)^vee per input, [omega]_x = dR R^T, v = dp - omega x p
+        (`jaxcal.kin.twists`). Here by forward mode; a convention may give them in closed form."""
+        u = jnp.concatenate([row, qv])
+        n = row.shape[0]
+        _, (dR, dp) = jax.vmap(lambda e: jax.jvp(lambda v: self.local_transform(v[:n], kind, v[n:]), (u,), (e,)))(
+            jnp.eye(u.shape[0], dtype=u.dtype))
+        R = frame.R
+        omega = jnp.stack([dR[:, 2] @ R[1], dR[:, 0] @ R[2], dR[:, 1] @ R[0]], axis=-1)  # (W21, W02, W10), W = dR R^T
+        return jnp.concatenate([omega, dp - jnp.cross(omega, frame.p)], axis=-1)
 
     @abc.abstractmethod
     def n_inputs(self, kind) -> int:

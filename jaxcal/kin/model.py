@@ -139,7 +139,8 @@ def joint_variables(robot: Robot, a, q):
 
 
 def take(v, index: tuple[int, ...]):
-    """v[index] for a constant index tuple (-1: the constant 0), as static slices of its runs of consecutive entries.
+    """v[index] (along v's first axis) for a constant index tuple (-1: the constant 0), as static slices of its runs of
+    consecutive entries.
 
     A gather's derivative in reverse mode is a scatter, which XLA:CPU runs as a loop over the indices (40 turns of 5
     kernels in the Stanford arm's residual-and-Jacobian, 10 % of it); a slice's is a pad, fused with its neighbours."""
@@ -150,9 +151,9 @@ def take(v, index: tuple[int, ...]):
     for k in range(1, len(index) + 1):
         if k == len(index) or not continues(k):
             first = index[start]
-            pieces.append(jnp.zeros(k - start, v.dtype) if first == -1 else v[first:first + k - start])
+            pieces.append(jnp.zeros((k - start,) + v.shape[1:], v.dtype) if first == -1 else v[first:first + k - start])
             start = k
-    return jnp.concatenate(pieces) if pieces else jnp.zeros(0, v.dtype)
+    return jnp.concatenate(pieces) if pieces else jnp.zeros((0,) + v.shape[1:], v.dtype)
 
 
 def body_row(body: Body, a_ext):

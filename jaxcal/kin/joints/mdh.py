@@ -33,6 +33,30 @@ def mdh_frame(row, sigma: int, qv) -> Pose:
     return Pose(R, p)
 
 
+def mdh_twists(row, sigma: int, frame: Pose) -> jnp.ndarray:
+    """The parent-frame twists (omega, v) (k, 6) of the inputs (alpha, d, theta, r, beta, then the joint variable) of
+    frame = `mdh_frame(row, sigma, qv)` (seed 001 eq 3; `Convention.local_twists`), in closed form: beta turns about
+    the parent's y, alpha about x1 = Ry(beta) x, d slides along x1, theta turns about z' = R z through o' = d x1
+    (v = o' x z'), r slides along z'."""
+    d, beta = row[1], row[4]
+    cb, sb = jnp.cos(beta), jnp.sin(beta)
+    zero = jnp.zeros_like(cb)
+    x1 = jnp.stack([cb, zero, -sb])
+    z = frame.R[:, 2]
+    o = d * x1
+    turn_z = jnp.concatenate([z, _cross3(o, z)])
+    slide_z = jnp.concatenate([jnp.zeros(3, z.dtype), z])
+    rows = [jnp.concatenate([x1, jnp.zeros(3, z.dtype)]), jnp.concatenate([jnp.zeros(3, z.dtype), x1]), turn_z, slide_z,
+            jnp.stack([zero, zero + 1.0, zero, zero, zero, zero])]
+    if sigma in (0, 1):
+        rows.append(turn_z if sigma == 0 else slide_z)
+    return jnp.stack(rows)
+
+
+def _cross3(a, b):
+    return jnp.stack([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
 class ModifiedDH(Convention):
     """Seed 001 frames; the joint moves along or about the body's own z axis."""
 
@@ -42,6 +66,9 @@ class ModifiedDH(Convention):
 
     def local_transform(self, row, kind, qv) -> Pose:
         return mdh_frame(row, kind, qv)
+
+    def local_twists(self, row, kind, qv, frame: Pose):
+        return mdh_twists(row, kind, frame)
 
     def n_inputs(self, kind) -> int:
         return 1 if kind in (0, 1) else 0

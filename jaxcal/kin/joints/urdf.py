@@ -55,6 +55,31 @@ def urdf_joint(row, kind, qv) -> Pose:
     raise ValueError(f"unknown URDF joint type {joint_type!r}; expected one of {URDF_TYPES}")
 
 
+def urdf_twists(row, kind, frame: Pose) -> jnp.ndarray:
+    """The parent-frame twists (omega, v) (8, 6) of the inputs (x, y, z, roll, pitch, yaw, offset, joint variable)
+    of frame = `urdf_joint(row, kind, qv)` (a fixed joint: 7 rows; `Convention.local_twists`), in closed form: x, y, z
+    slide along the parent's axes; yaw, pitch and roll turn about z, Rz(yaw) y and Rz(yaw) Ry(pitch) x through
+    o = (x, y, z) (v = o x omega); the offset and the joint variable turn about (slide along) R a, a the joint axis."""
+    joint_type, axis = kind
+    o, pitch, yaw = row[0:3], row[4], row[5]
+    cp, sp, cy, sy = jnp.cos(pitch), jnp.sin(pitch), jnp.cos(yaw), jnp.sin(yaw)
+    zero = jnp.zeros_like(cp)
+
+    def turn(w):
+        return jnp.concatenate([w, jnp.cross(o, w)])
+
+    def slide(u):
+        return jnp.concatenate([jnp.zeros_like(u), u])
+
+    unit = jnp.eye(3, dtype=o.dtype)
+    rows = [slide(unit[0]), slide(unit[1]), slide(unit[2]), turn(jnp.stack([cy * cp, sy * cp, -sp])),
+            turn(jnp.stack([-sy, cy, zero])), turn(jnp.stack([zero, zero, zero + 1.0]))]
+    moving = frame.R @ np.asarray(axis, float)  # R0 Rot(a, angle) a = R0 a
+    motion = {"revolute": turn, "prismatic": slide}.get(joint_type, lambda u: jnp.zeros(6, u.dtype))(moving)
+    rows += [motion] if joint_type == "fixed" else [motion, motion]
+    return jnp.stack(rows)
+
+
 class UrdfJoints(Convention):
     """URDF joints: the joint variable adds to the offset and moves along the joint's own axis.
     A compliant revolute joint takes the gravity torque as an extra input (not counted by n_inputs)."""
@@ -66,6 +91,11 @@ class UrdfJoints(Convention):
 
     def local_transform(self, row, kind, qv) -> Pose:
         return urdf_joint(row, kind, qv)
+
+    def local_twists(self, row, kind, qv, frame: Pose):
+        if row.shape[0] != len(URDF_ROW):  # a compliant joint (`urdf_joint`): by forward mode
+            return super().local_twists(row, kind, qv, frame)
+        return urdf_twists(row, kind, frame)
 
     def n_inputs(self, kind) -> int:
         return 0 if kind[0] == "fixed" else 1
