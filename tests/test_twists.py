@@ -1,8 +1,9 @@
 """The open chains' residual Jacobian from parameter twists (`jaxcal.kin.twists`, `core.open_residual_and_jacobian`)
 against the reverse-mode Jacobian of the plain residual (`core.data_residual_and_jacobian`, which differentiates
 `forward` and the device's reading with no twist algebra) and against central differences: every open convention
-(modified DH with gains, coupled joints, PRY with a base frame, URDF, a planar chain that reads its parent, MCPC),
-every device kind, a tree read at two tips, and the frames-only (robot held) case."""
+(modified DH with gains and coupled joints, standard DH with a joint driven by two others, PRY with a base frame and
+with every module kind, URDF, a planar chain that reads its parent, MCPC), every device kind, a tree read at two tips,
+and the frames-only (robot held) case."""
 
 import functools
 
@@ -21,7 +22,7 @@ from jaxcal.kin.convention import Convention, get_convention
 from jaxcal.kin.model import Body, Robot, forward_open
 from jaxcal.kin.twists import tools_and_twists
 from jaxcal.measure.registry import registered_kinds
-from jaxcal.robots.build import mcpc_robot
+from jaxcal.robots.build import mcpc_robot, pry_robot
 from jaxcal.robots.io import robot_from_dict
 
 SINGLE_TOOL_KINDS = tuple(k for k in registered_kinds() if k != "link_camera")
@@ -43,12 +44,28 @@ def _coupled_stanford():
     return robot_from_dict(doc, "stanford_coupled.yaml")
 
 
+def _coupled_torso():
+    """Standard DH (its twists by forward mode) with a joint driven by two others: 5 inputs, 6 joint variables."""
+    return robot_from_dict({
+        "name": "torso_arm", "convention": "standard_dh", "columns": ["name", "parent", "type", "theta", "d", "a", "alpha"],
+        "joints": [["t1", "base", "R", 0.0, 0.4, 0.1, 0.0], ["t2", "t1", "R", 0.2, 0.0, 0.3, 0.0],
+                   ["t3", "t2", "R", 0.0, 0.0, 0.05, 1.57], ["s1", "t3", "R", 0.1, 0.2, 0.0, -1.57],
+                   ["s2", "s1", "R", -0.3, 0.0, 0.35, 0.0], ["e1", "s2", "R", 0.0, 0.05, 0.3, 1.2]],
+        "coupling": {"t3": {"t1": -1, "t2": -1, "offset": 0.1}}}, "torso.yaml")
+
+
 def _planar_chain():
     """An open three-link planar chain (absolute joint angles: each body reads its parent's row and angle)."""
     bodies = tuple(Body(f"l{i}", "planar", 0, i - 1, (2 * i, 2 * i + 1), (i,)) for i in range(3))
     names = tuple(f"l{i}.{n}" for i in range(3) for n in ("a", "phi"))
     return Robot("planar3", bodies, names, np.array([0.5, 0.1, 0.4, -0.2, 0.3, 0.05]), ("length", "angle") * 3,
                  np.ones(6, bool), np.ones(6), ("q0", "q1", "q2"), np.zeros(3), -np.pi * np.ones(3), np.pi * np.ones(3))
+
+
+def _pry_kinds():
+    """A PRY chain with every multi-input module kind (their twists by forward mode)."""
+    return pry_robot("allkinds", (0, 0, 0.1), [("cylindrical", (0.1, 0, 0), (0, 0, 0)), ("universal", (0.2, 0, 0), (0.1, 0, 0)),
+                                               ("spherical", (0, 0, 0.1), (0, 0.2, 0)), ("revolute", (0.1, 0.05, 0), (0.1, 0, 0.2))])
 
 
 def _mcpc_chain():
@@ -71,7 +88,7 @@ def _two_hands():
 
 ROBOTS = {"stanford": lambda: jc.robots.get("stanford"), "coupled": _coupled_stanford, "mrr1": lambda: jc.robots.get("mrr1"),
           "talos": lambda: jc.robots.get("talos_left_arm"), "planar": _planar_chain, "mcpc": _mcpc_chain,
-          "two_hands": _two_hands}
+          "pry_kinds": _pry_kinds, "torso": _coupled_torso, "two_hands": _two_hands}
 
 
 @functools.cache
@@ -95,24 +112,25 @@ def _case(robot_name, kind, n=4, seed=0):
 
 def _reference(model, x, q, y, w):
     """Reverse mode through `forward` and the reading, sample by sample (no twists)."""
-    return core.data_residual_and_jacobian(model, x, q, y, jnp.zeros((len(q), 0)), w)
+    return jax.jit(core.data_residual_and_jacobian, static_argnums=0)(model, x, q, y, jnp.zeros((len(q), 0)), w)
 
 
 def _twists(model, x, q, y, w, held=False):
     return jax.jit(core.open_residual_and_jacobian, static_argnums=(0, 1))(model.robot, model.device, x, q, y, w, held)
 
 
-@pytest.mark.parametrize("robot_name", ["stanford", "coupled", "mrr1", "talos", "planar", "mcpc"])
+@pytest.mark.parametrize("robot_name", ["stanford", "coupled", "mrr1", "talos", "planar", "mcpc", "pry_kinds",
+                                        "torso"])
 def test_open_chains_match_reverse_mode(robot_name):
-    """Every open convention, positions and poses: r equal, J to 1e-12 relative (measured 1e-16..1e-15)."""
-    for kind in ("position", "pose"):
-        model, x, q, y, w = _case(robot_name, kind)
-        r0, J0 = _reference(model, x, q, y, w)
-        r1, J1 = _twists(model, x, q, y, w)
-        np.testing.assert_allclose(r1, r0, rtol=0, atol=1e-12)
-        assert rel_err(J1, J0) < 1e-12, (robot_name, kind, rel_err(J1, J0))
-        moves = lambda J: np.any(np.asarray(J)[:, :model.robot.n_params] != 0, axis=0)  # noqa: E731
-        np.testing.assert_array_equal(moves(J1), moves(J0))
+    """Every open convention read as full poses (the device test below covers every reading on one robot): r equal,
+    J to 1e-12 relative (measured 1e-16..1e-15), the same columns nonzero."""
+    model, x, q, y, w = _case(robot_name, "pose")
+    r0, J0 = _reference(model, x, q, y, w)
+    r1, J1 = _twists(model, x, q, y, w)
+    np.testing.assert_allclose(r1, r0, rtol=0, atol=1e-12)
+    assert rel_err(J1, J0) < 1e-12, (robot_name, rel_err(J1, J0))
+    moves = lambda J: np.any(np.asarray(J)[:, :model.robot.n_params] != 0, axis=0)  # noqa: E731
+    np.testing.assert_array_equal(moves(J1), moves(J0))
 
 
 @pytest.mark.parametrize("kind", SINGLE_TOOL_KINDS)
@@ -152,7 +170,7 @@ def test_central_differences_and_held_robot():
 
 
 def test_tools_are_the_forward_kinematics():
-    for name in ("stanford", "coupled", "mrr1", "planar", "two_hands"):
+    for name in ("stanford", "coupled", "mrr1", "planar", "two_hands", "torso"):
         rb = _robot(name)
         qi = jnp.asarray(jc.random_configurations(rb, 1, seed=5)[0])
         tools, Xi = tools_and_twists(rb, rb.nominal, qi)
@@ -166,7 +184,9 @@ AXIS = tuple(np.array([0.3, -0.5, 0.81]) / np.linalg.norm([0.3, -0.5, 0.81]))
 
 
 @pytest.mark.parametrize("convention, kind", [("mdh", 0), ("mdh", 1), ("mdh", 2), ("urdf", ("revolute", AXIS)),
-                                              ("urdf", ("prismatic", AXIS)), ("urdf", ("fixed", AXIS))])
+                                              ("urdf", ("prismatic", AXIS)), ("urdf", ("fixed", AXIS)),
+                                              ("pry", "revolute"), ("pry", "prismatic"), ("pry", "cylindrical"),
+                                              ("pry", "fixed")])
 def test_closed_form_twists(convention, kind):
     """The conventions' closed-form input twists equal the generic ones by forward mode (`Convention.local_twists`)."""
     conv = get_convention(convention)

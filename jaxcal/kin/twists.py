@@ -8,12 +8,12 @@ every frame below b by the same rigid motion. In the world that motion is the tw
 
 and a tool frame T = (R_T, p_T) below b moves by dR_T = [omega]_x R_T, dp_T = omega x p_T + v (the product of
 exponentials' Jacobian, Lynch & Park, "Modern Robotics", 2017, §5.1, with the parameters of seed 001 eq 2-4 in place
-of the joints). Each convention gives its inputs' twists in the parent frame (`Convention.local_twists`: closed form
-for modified DH, forward mode otherwise). Joint variables depend on the parameters through the gains only (seed 001
-eq 4, q_j = Cj diag(K) Cm q_m): d q_j / d K by forward mode, times the twists of the inputs that read q_j. Gathered per
-parameter and per tip (bodies off a tip's path do not move it), the twists make Xi (n_tips, P, 6); a reading's
-Jacobian is then its derivative along the 6 unit twists of each tool times Xi (`jaxcal.fit.core`), in place of m
-reverse passes through the chain.
+of the joints). Each convention gives its inputs' twists in the parent frame (`Convention.local_twists`: closed
+form for modified DH, URDF and one-axis PRY modules, forward mode otherwise). Joint variables depend on the
+parameters through the gains only (seed 001 eq 4, q_j = Cj diag(K) Cm q_m): d q_j / d K by forward mode, times the
+twists of the inputs that read q_j. Gathered per parameter and per tip (bodies off a tip's path do not move it), the
+twists make Xi (n_tips, P, 6); a reading's Jacobian is then its derivative along the 6 unit twists of each tool
+(`wrench`) times Xi (`jaxcal.fit.core.open_residual_and_jacobian`), in place of m reverse passes through the chain.
 """
 
 from __future__ import annotations
@@ -61,6 +61,14 @@ def _path(robot: Robot, b: int) -> set[int]:
     return out
 
 
+def _joint_count(robot: Robot) -> int:
+    """How many joint variables q_j = Cj diag(K) Cm q_m there are (seed 001 eq 4): Cj's rows, else one per input."""
+    for matrix in (robot.coupling_joint, robot.coupling_motor):
+        if matrix is not None:
+            return np.shape(matrix)[0]
+    return robot.n_inputs
+
+
 def _width(robot: Robot) -> int:
     """The most inputs of a body: each body's input twists take that many rows (the rest 0)."""
     return max(sum(map(len, _body_inputs(robot, b))) for b in range(len(robot.bodies)))
@@ -90,7 +98,7 @@ def assembly(robot: Robot) -> tuple[tuple, tuple, tuple[int, ...]]:
     joint_sources, param_sources = [], []
     for tip in tips:
         path = _path(robot, tip % n_b)
-        by_joint = [[] for _ in range(robot.n_inputs)]
+        by_joint = [[] for _ in range(_joint_count(robot))]
         by_param = [[] for _ in range(robot.n_params)]
         for b, (rows, joints) in enumerate(inputs):
             for slot, (index, by) in enumerate([(i, by_param) for i in rows] + [(j, by_joint) for j in joints]):

@@ -46,6 +46,26 @@ def pry_module(row, kind: str, qv) -> Pose:
     return Pose(R, R @ (row[0:3] + bm))
 
 
+def pry_twists(row, kind: str, frame: Pose) -> jnp.ndarray:
+    """The parent-frame twists (omega, v) (6 + inputs, 6) of the inputs (bx, by, bz, pitch, roll, yaw, joint values)
+    of frame = `pry_module(row, kind, qv)` for the one-axis kinds and "cylindrical" (`Convention.local_twists`), in
+    closed form: every turn is about an axis through the parent's origin (v = 0): pitch about x, roll about
+    Rx(pitch) y, yaw and a rotary variable about Rx(pitch) Ry(roll) z; b slides along the module's axes R e_i, and a
+    sliding variable along R z."""
+    pitch, roll = row[3], row[4]
+    ca, sa, cb, sb = jnp.cos(pitch), jnp.sin(pitch), jnp.cos(roll), jnp.sin(roll)
+    zero = jnp.zeros_like(ca)
+    nothing = jnp.zeros(3, ca.dtype)
+    turn = lambda w: jnp.concatenate([w, nothing])  # noqa: E731
+    slide = lambda u: jnp.concatenate([nothing, u])  # noqa: E731
+    spin = turn(jnp.stack([sb, -sa * cb, ca * cb]))  # about Rx(pitch) Ry(roll) z = Rs z
+    R = frame.R
+    rows = [slide(R[:, 0]), slide(R[:, 1]), slide(R[:, 2]), turn(jnp.stack([zero + 1.0, zero, zero])),
+            turn(jnp.stack([zero, ca, sa])), spin]
+    rows += {"revolute": [spin], "prismatic": [slide(R[:, 2])], "cylindrical": [spin, slide(R[:, 2])], "fixed": []}[kind]
+    return jnp.stack(rows)
+
+
 class PryModules(Convention):
     """Seed 000 modules: Rs Rz(q) = Rx Ry Rz(yaw + q), so a rotary variable offsets yaw; a sliding
     one adds to bz."""
@@ -56,6 +76,11 @@ class PryModules(Convention):
 
     def local_transform(self, row, kind, qv) -> Pose:
         return pry_module(row, kind, qv)
+
+    def local_twists(self, row, kind, qv, frame: Pose):
+        if kind in ("universal", "spherical"):  # two or three turns in a row: by forward mode
+            return super().local_twists(row, kind, qv, frame)
+        return pry_twists(row, kind, frame)
 
     def n_inputs(self, kind) -> int:
         return PRY_KINDS[kind]
