@@ -120,6 +120,11 @@ def _summed(rows, levels):
     return out
 
 
+def _times(A, B):
+    """A @ B for a few rows and columns, as a product summed (XLA:CPU fuses it; a dot is a kernel call of its own)."""
+    return jnp.sum(A[:, :, None] * B[None], axis=1)
+
+
 def _world_twists(xi, parents: Pose):
     """Parent-frame twists xi (n_b, k, 6) of every body's inputs in the world, parents (n_b, 3, 3)/(n_b, 3) the
     bodies' parents' world frames: Ad(parent) (omega, v) = (R omega, R v + p x R omega)."""
@@ -177,7 +182,7 @@ def parameter_twists(robot: Robot, a, q, inputs) -> jnp.ndarray:
         slot = tuple(int(k) if i >= 0 else -1 for k, i in zip(row_of, gains))
     Xi = []
     for joints, params in zip(joint_sources, param_sources):
-        sources = jnp.concatenate([C, take(dq @ _summed(C, joints), slot)]) if gains else C
+        sources = jnp.concatenate([C, take(_times(dq, _summed(C, joints)), slot)]) if gains else C
         Xi.append(_summed(sources, params))
     return jnp.stack(Xi)
 
