@@ -199,3 +199,13 @@ def test_closed_form_twists(convention, kind):
         generic = Convention.local_twists(conv, row, kind, qv, frame)
         assert closed.shape == (len(conv.row_names) + conv.n_inputs(kind), 6)
         np.testing.assert_allclose(closed, generic, rtol=0, atol=1e-14)
+
+
+def test_chunks_with_a_remainder(monkeypatch):
+    """Samples split into chunks of 3 with a remainder (`core.JACOBIAN_CHUNK`, read when traced) give the same r, J."""
+    model, x, q, y, w = _case("stanford", "pose", n=4)
+    r0, J0 = _reference(model, x, q, y, w)
+    monkeypatch.setattr(core, "JACOBIAN_CHUNK", 3)
+    r1, J1 = jax.jit(lambda v: core.open_residual_and_jacobian(model.robot, model.device, v, q, y, w))(x)
+    np.testing.assert_allclose(r1, r0, rtol=0, atol=1e-12)
+    assert rel_err(J1, J0) < 1e-12

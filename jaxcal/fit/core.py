@@ -176,8 +176,8 @@ def open_residual_and_jacobian(robot: Robot, device: Device, x, q, y, w, robot_h
     (`jaxcal.kin.twists.tools_and_twists`); the reading's m vector-Jacobian products give dr/dd and dr/dT, which
     `twists.wrench` turns into the derivative along each unit twist of the tool (m, 6), and dr/da = that times Xi.
     No reverse pass runs through the chain. Against m reverse passes (Stanford arm, 200 readings, this 2-core CPU):
-    the solver's XLA compile ~25 % shorter (first identify 3.0 -> 2.4 s for positions, 3.9 -> 3.1 s for poses), one
-    residual and Jacobian for poses 1.7 -> 1.4 ms, for positions the same (docs/benchmarks.md, 2026-11-29, eleventh session).
+    the first identify 3.2 -> 2.3 s (positions) and 4.0 -> 3.0 s (poses), mostly the solver's XLA compile; a pose
+    residual and Jacobian 1.6-1.8 -> 1.1 ms of kernels (docs/benchmarks.md, 2026-11-29, eleventh session).
     robot_held (traced): the robot's columns are 0 and Xi is not computed."""
     nr = robot.n_params
     a, d = x[:nr], x[nr:]
@@ -225,8 +225,8 @@ class RobotDevice:
 
     @property
     def jacobian_mode(self) -> str:
-        """Reverse mode sample by sample (`data_residual_and_jacobian`); a closed mechanism's closure is solved for
-        the batch first (`presolve`)."""
+        """Sample by sample (`residual_and_jacobian`: an open chain from its parameters' twists, a closed mechanism
+        in reverse mode after its closure is solved for the batch, `presolve`)."""
         return "reverse"
 
     def presolve(self, x, q):
