@@ -117,3 +117,15 @@ def device_frame(kind):
         if n in dev.names:
             d[dev.names.index(n)] = v
     return d
+
+
+def mcpc_spatial():
+    """A four-body open MCPC chain in space (rows as `jaxcal.robots.mcpc_robot` takes them)."""
+    from jaxcal.robots.build import mcpc_robot
+
+    return mcpc_robot("spatial", [
+        [0.1, -0.2, 0.3, 0.2, 0.1, 0.0, 0, 0, 0],
+        [0.4, 0.1, 0.0, 0.3, -0.1, 0.0, 1, 0, 0],
+        [-0.3, 0.2, 0.0, 0.0, 0.0, 0.1, 2, 0, 1],
+        [0.2, 0.1, 0.5, 0.1, 0.2, 0.3, 3, 0, 3],
+    ])

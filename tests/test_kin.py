@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import central_fd, rel_err
+from helpers import mcpc_spatial
 
 import jaxcal as jc
 from jaxcal.robots import RobotFileError, mcpc_robot, pry_robot
@@ -91,19 +92,10 @@ def test_batched_forward_shapes():
     np.testing.assert_allclose(pose.p[1, 2], one.p, atol=1e-15)
 
 
-def _mcpc_spatial():
-    return mcpc_robot("spatial", [
-        [0.1, -0.2, 0.3, 0.2, 0.1, 0.0, 0, 0, 0],
-        [0.4, 0.1, 0.0, 0.3, -0.1, 0.0, 1, 0, 0],
-        [-0.3, 0.2, 0.0, 0.0, 0.0, 0.1, 2, 0, 1],
-        [0.2, 0.1, 0.5, 0.1, 0.2, 0.3, 3, 0, 3],
-    ])
-
-
 @pytest.mark.parametrize("name", ["mrr1", "stanford", "mcpc"])
 def test_forward_gradient_matches_central_fd(name):
     """jacfwd of the tool pose w.r.t. all parameters vs central FD; relative error < 1e-7."""
-    rb = _mcpc_spatial() if name == "mcpc" else jc.robots.get(name)
+    rb = mcpc_spatial() if name == "mcpc" else jc.robots.get(name)
     a0 = np.asarray(jc.perturb(rb, 0.01, seed=5))
     q = jc.random_configurations(rb, 3, seed=1)
 
@@ -154,7 +146,7 @@ def test_robot_yaml_round_trip_and_seed_layout(tmp_path):
         assert back.names == rb.names
         q = jc.random_configurations(rb, 5)
         np.testing.assert_allclose(jc.forward(back, back.nominal, q).matrix(), jc.forward(rb, a, q).matrix(), atol=1e-14)
-    mc = _mcpc_spatial()
+    mc = mcpc_spatial()
     jc.save_robot(mc, str(tmp_path / "mc.yaml"))
     back = jc.load_robot(str(tmp_path / "mc.yaml"))
     q = jc.random_configurations(mc, 4)

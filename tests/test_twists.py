@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import yaml
 from conftest import central_fd, rel_err
-from helpers import device, device_frame
+from helpers import device, device_frame, mcpc_spatial
 
 import jaxcal as jc
 from jaxcal.fit import core
@@ -22,7 +22,7 @@ from jaxcal.kin.convention import Convention, get_convention
 from jaxcal.kin.model import Body, Robot, forward_open
 from jaxcal.kin.twists import tools_and_twists
 from jaxcal.measure.registry import registered_kinds
-from jaxcal.robots.build import mcpc_robot, pry_robot
+from jaxcal.robots.build import pry_robot
 from jaxcal.robots.io import robot_from_dict
 
 SINGLE_TOOL_KINDS = tuple(k for k in registered_kinds() if k != "link_camera")
@@ -68,15 +68,6 @@ def _pry_kinds():
                                                ("spherical", (0, 0, 0.1), (0, 0.2, 0)), ("revolute", (0.1, 0.05, 0), (0.1, 0, 0.2))])
 
 
-def _mcpc_chain():
-    return mcpc_robot("spatial", [
-        [0.1, -0.2, 0.3, 0.2, 0.1, 0.0, 0, 0, 0],
-        [0.4, 0.1, 0.0, 0.3, -0.1, 0.0, 1, 0, 0],
-        [-0.3, 0.2, 0.0, 0.0, 0.0, 0.1, 2, 0, 1],
-        [0.2, 0.1, 0.5, 0.1, 0.2, 0.3, 3, 0, 3],
-    ])
-
-
 def _two_hands():
     import os
 
@@ -87,7 +78,7 @@ def _two_hands():
 
 
 ROBOTS = {"stanford": lambda: jc.robots.get("stanford"), "coupled": _coupled_stanford, "mrr1": lambda: jc.robots.get("mrr1"),
-          "talos": lambda: jc.robots.get("talos_left_arm"), "planar": _planar_chain, "mcpc": _mcpc_chain,
+          "talos": lambda: jc.robots.get("talos_left_arm"), "planar": _planar_chain, "mcpc": mcpc_spatial,
           "pry_kinds": _pry_kinds, "torso": _coupled_torso, "two_hands": _two_hands}
 
 
