@@ -168,11 +168,13 @@ def body_joint_values(body: Body, qj):
     return jnp.zeros(body.conv.n_inputs(body.kind), qj.dtype)
 
 
-def frames_single(robot: Robot, a, qj) -> Pose:
-    """Every body frame in the world, for one vector of joint variables qj. Returns stacked Pose."""
+def body_frames(robot: Robot, a, qj) -> list[tuple]:
+    """For each body, from the base outwards, (row, qv, local, parent, world) for one vector of joint variables qj:
+    the row and joint values its convention reads (a convention that `reads_parent` gets its parent's first), its
+    local transform, its parent's world frame (`robot.base` or the identity for a body on the base) and its own."""
     root = robot.base if robot.base is not None else Pose.identity()
-    Rs, ps, rows, qvs = [], [], [], []
     a_ext = jnp.append(a, 0.0)
+    out, rows, qvs = [], [], []
     for body in robot.bodies:
         conv = body.conv
         row, qv = body_row(body, a_ext), body_joint_values(body, qj)
@@ -183,11 +185,15 @@ def frames_single(robot: Robot, a, qj) -> Pose:
             row = jnp.concatenate([rows[up] if up >= 0 else jnp.zeros_like(row), row])
             qv = jnp.concatenate([qvs[up] if up >= 0 else jnp.zeros_like(qv), qv])
         local = conv.local_transform(row, body.kind, qv)
-        parent = root if body.parent < 0 else Pose(Rs[body.parent], ps[body.parent])
-        world = parent.compose(local)
-        Rs.append(world.R)
-        ps.append(world.p)
-    return Pose(jnp.stack(Rs), jnp.stack(ps))
+        parent = root if body.parent < 0 else out[body.parent][4]
+        out.append((row, qv, local, parent, parent.compose(local)))
+    return out
+
+
+def frames_single(robot: Robot, a, qj) -> Pose:
+    """Every body frame in the world, for one vector of joint variables qj. Returns stacked Pose."""
+    worlds = [world for *_, world in body_frames(robot, a, qj)]
+    return Pose(jnp.stack([w.R for w in worlds]), jnp.stack([w.p for w in worlds]))
 
 
 def map_leading_axes(fn, q):

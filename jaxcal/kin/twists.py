@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.kin.model import Robot, body_joint_values, body_row, joint_variables, take
+from jaxcal.kin.model import Robot, body_frames, joint_variables, take
 from jaxcal.kin.pose import Pose
 
 
@@ -43,7 +43,7 @@ def _own_inputs(robot: Robot, b: int) -> tuple[tuple[int, ...], tuple[int, ...]]
 
 def _body_inputs(robot: Robot, b: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
     """(parameter indices, joint-variable indices) of body b's local transform inputs, in the order the forward pass
-    gives them (`jaxcal.kin.model.frames_single`: a convention that `reads_parent` takes its parent's first)."""
+    gives them (`jaxcal.kin.model.body_frames`: a convention that `reads_parent` takes its parent's first)."""
     rows, joints = _own_inputs(robot, b)
     body = robot.bodies[b]
     if body.conv.reads_parent:
@@ -137,22 +137,9 @@ def tools_and_twists(robot: Robot, a, q, held=False):
     """(tools, Xi) for one joint-input vector q (n_inputs,) of an open tree: the tool frames (tips: (K, 3, 3)/(K, 3),
     else (3, 3)/(3,)), as `jaxcal.kin.model.forward_open`, and the world twist (omega, v) of each tool per robot
     parameter, Xi (n_tips, P, 6) (module docstring). held (traced): Xi = 0, not computed."""
-    qj = joint_variables(robot, a, q)
-    root = robot.base if robot.base is not None else Pose.identity()
-    a_ext = jnp.append(a, 0.0)
-    worlds, rows, qvs, inputs = [], [], [], []
-    for body in robot.bodies:
-        row, qv = body_row(body, a_ext), body_joint_values(body, qj)
-        rows.append(row)
-        qvs.append(qv)
-        if body.conv.reads_parent:
-            up = body.parent
-            row = jnp.concatenate([rows[up] if up >= 0 else jnp.zeros_like(row), row])
-            qv = jnp.concatenate([qvs[up] if up >= 0 else jnp.zeros_like(qv), qv])
-        parent = root if body.parent < 0 else worlds[body.parent]
-        local = body.conv.local_transform(row, body.kind, qv)
-        inputs.append((row, qv, local, parent))
-        worlds.append(parent.compose(local))
+    steps = body_frames(robot, a, joint_variables(robot, a, q))
+    worlds = [world for *_, world in steps]
+    inputs = [(row, qv, local, parent) for row, qv, local, parent, _ in steps]
     at = [t % len(robot.bodies) for t in (robot.tips or (robot.tip,))]
     if robot.tips:
         tools = Pose(jnp.stack([worlds[t].R for t in at]), jnp.stack([worlds[t].p for t in at]))

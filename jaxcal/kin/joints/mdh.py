@@ -44,17 +44,13 @@ def mdh_twists(row, sigma: int, frame: Pose) -> jnp.ndarray:
     x1 = jnp.stack([cb, zero, -sb])
     z = frame.R[:, 2]
     o = d * x1
-    turn_z = jnp.concatenate([z, _cross3(o, z)])
+    turn_z = jnp.concatenate([z, jnp.cross(o, z)])
     slide_z = jnp.concatenate([jnp.zeros(3, z.dtype), z])
     rows = [jnp.concatenate([x1, jnp.zeros(3, z.dtype)]), jnp.concatenate([jnp.zeros(3, z.dtype), x1]), turn_z, slide_z,
             jnp.stack([zero, zero + 1.0, zero, zero, zero, zero])]
     if sigma in (0, 1):
         rows.append(turn_z if sigma == 0 else slide_z)
     return jnp.stack(rows)
-
-
-def _cross3(a, b):
-    return jnp.stack([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
 class ModifiedDH(Convention):
