@@ -28,13 +28,6 @@ from jaxcal.kin.model import Robot, body_frames, joint_variables, take
 from jaxcal.kin.pose import Pose
 
 
-def _cross(a, b):
-    """a x b over the last axis, written out."""
-    return jnp.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-                      a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], axis=-1)
-
-
 def _own_inputs(robot: Robot, b: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
     """Body b's own parameter indices and joint-variable indices (-1: a constant 0)."""
     body = robot.bodies[b]
@@ -129,7 +122,7 @@ def _world_twists(xi, parents: Pose):
     """Parent-frame twists xi (n_b, k, 6) of every body's inputs in the world, parents (n_b, 3, 3)/(n_b, 3) the
     bodies' parents' world frames: Ad(parent) (omega, v) = (R omega, R v + p x R omega)."""
     omega_w = jnp.einsum("bij,bkj->bki", parents.R, xi[..., :3])
-    v_w = jnp.einsum("bij,bkj->bki", parents.R, xi[..., 3:]) + _cross(parents.p[:, None, :], omega_w)
+    v_w = jnp.einsum("bij,bkj->bki", parents.R, xi[..., 3:]) + jnp.cross(parents.p[:, None, :], omega_w)
     return jnp.concatenate([omega_w, v_w], axis=-1)
 
 
@@ -181,4 +174,4 @@ def wrench(tool: Pose, cotangent: Pose):
     (vee of M - M^T with M = G R^T, plus p x g; g)."""
     M = jnp.einsum("...ab,...cb->...ac", cotangent.R, tool.R)
     turn = jnp.stack([M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0], M[..., 1, 0] - M[..., 0, 1]], axis=-1)
-    return jnp.concatenate([turn + _cross(tool.p, cotangent.p), cotangent.p], axis=-1)
+    return jnp.concatenate([turn + jnp.cross(tool.p, cotangent.p), cotangent.p], axis=-1)
