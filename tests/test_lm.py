@@ -165,3 +165,20 @@ def test_a_step_on_the_free_columns_alone_is_the_masked_step():
         assert np.asarray(gathered.z)[[0, 2, 4]].tolist() == np.asarray(z0)[[0, 2, 4]].tolist()
         np.testing.assert_allclose(np.asarray(gathered.J), np.asarray(jax.jacfwd(embedded)(gathered.z, 100.0)), rtol=1e-14,
                                    atol=1e-14)
+
+
+def test_a_step_of_negligible_predicted_gain_ends_the_run(monkeypatch):
+    """A step whose predicted decrease is at round-off (here 1e-18 of the cost, which rounds to 0) ends the run
+    though it is far above the tolerances, kept since the cost did not rise: z is optimal to working precision.
+    Judged by the tolerances alone the run went on (here two more steps; on an ill-conditioned fit, whose round-off
+    steps exceed the residual tolerance, rejections while lam grew: tests/test_core.py's far-frame Stanford arm).
+    r(z) = (1, 1e-6 z) from z = 1e-3: the step is -1e-3, to the optimum z = 0 up to the QR's round-off,
+    eps |r| / |J| ~ 1e-10 (measured -8.2e-11)."""
+    fn = lambda z, args: jnp.concatenate([jnp.ones(1), 1e-6 * z])  # noqa: E731
+    res = lm.least_squares(fn, jnp.full(1, 1e-3), None, max_steps=50, rtol=1e-10, atol=1e-12)
+    assert bool(res.converged) and int(res.steps) == 1 and abs(float(res.z[0])) < 1e-9
+    monkeypatch.setattr(lm, "ROUND_OFF", -np.inf)  # the tolerances alone
+    s1 = lm.step(fn, lm.init(fn, jnp.full(1, 1e-3), None), None, 1e-10, 1e-12)
+    assert not bool(s1.converged) and abs(float(s1.z[0])) < 1e-9
+    res = lm.least_squares(fn, jnp.full(1, 1e-3), None, max_steps=50, rtol=1e-10, atol=1e-12)
+    assert int(res.steps) > 1  # 3 measured: its round-off steps (~1e-10) exceed atol until one happens not to

@@ -374,7 +374,8 @@ class Settings:
     atol + rtol |z| and every residual r_i by less than atol + rtol |r_i|. In z one unit is a typical change
     (1 cm, 0.01 rad, a gain of 1), so the defaults stop at ~1e-8 m; the stricter 1e-8 / 1e-10 gave the same
     estimate and RMS (6 digits, Stanford arm, 200 poses) after 24 steps instead of 6: past the optimum every
-    proposed step is rejected until the trust region has shrunk to round-off."""
+    proposed step is rejected until the trust region has shrunk to round-off. The core's LM also stops after an
+    accepted step whose predicted cost decrease is at round-off (`lm.ROUND_OFF`)."""
 
     solver: object = "lm"
     max_steps: int = 200
