@@ -46,13 +46,11 @@ import jax.numpy as jnp
 ACCEPT = 1e-3  # smallest gain ratio of an accepted step
 # Initial damping relative to the largest diagonal entry of J^T J. Madsen et al. (§3.2) advise 1e-6 when the start
 # is believed close to the solution, 1e-3 otherwise; the core starts from the nominal robot with the device frames
-# fitted, whose geometry is within a few mm and mrad of the truth: there the Gauss-Newton step is good, and a
-# larger start damping only holds back the weak directions for the steps it takes to decay (at most 1/3 a step).
-# Stanford arm, 200 readings, 1 mm / 2 mrad errors: 1e-3 took 19 (position) / 15 (pose) iterations, 1e-6 11 / 10,
-# optimistix's LM 6. LM steps of a whole `identify`, all stages (8 cases, 1 mm errors, 0.01 mm noise, and the real
-# data sets; docs/benchmarks.md, twelfth session), 1e-6 -> 1e-9: Stanford 200 positions 11 -> 8, poses 12 -> 8,
-# MRR-1 10 -> 7, UR10 70 -> 44, planar four-bar 429 -> 301, Delta 125 positions 304 -> 259, real TIAGo 976 -> 991,
-# UR10 1884 -> 1876, TALOS 106 -> 118 (its bias stages); the same RMS to 8 digits. 1e-12 took more in total.
+# fitted, within millimetres of the optimum: there the Gauss-Newton step is good, and a larger start damping only
+# holds back the weak directions for the steps it takes to decay (at most 1/3 a step). LM steps of a whole `identify`
+# (docs/benchmarks.md, twelfth session), 1e-6 -> 1e-9 with the round-off stop of `advance`: Stanford arm, 200
+# positions 9 -> 6, poses 11 -> 7; UR10 47 -> 34; planar four-bar 337 -> 215; Delta 252 -> 197; TALOS 90 -> 96 (its
+# bias stages); the same RMS. Without that stop 1e-9 and 1e-10 took the fewest steps over 8 cases, 1e-12 more.
 TAU = 1e-9
 # Relative cost change taken as round-off (a sum of ~1e3 squares in float64 carries ~1e-13 of relative error).
 ROUND_OFF = 1e-10
