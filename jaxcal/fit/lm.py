@@ -58,7 +58,7 @@ LAM_MAX = 1e30  # damping past which no step can change anything: stop, unconver
 ACCEL_COS = 0.9  # the acceleration is used only when the step v is within this cosine of the last accepted step
 ACCEL_MAX = 0.75  # the acceleration a is used only when 2 |a| <= ACCEL_MAX |v| (Transtrum & Sethna's alpha)
 # Iterations before the acceleration is used: the fits it shortens are long (the Delta's 200-step crawls); the short
-# ones (the Stanford arm's 4 + 7 steps) run exactly as plain LM.
+# ones (the Stanford arm's 3 + 3 steps) run exactly as plain LM.
 ACCEL_AFTER = 8
 
 
