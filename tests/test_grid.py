@@ -28,7 +28,18 @@ ROUND_TRIP_FAST = [("mrr1", "position")]
 MONTE_CARLO_FAST = [("mrr1", "position")]
 
 MONTE_CARLO_XFAIL: dict = {}  # theodolite / laser_range crashed until Monte Carlo used the devices' own noise model
-ROUND_TRIP_XFAIL: dict = {}  # none among the cells run so far (mrr1 x all devices, stanford-pose, ur10-orientation)
+# The four-bars read by angles or ranges alone from the rotated frame 1.6-2.9 m away: the slow grid run of 2026-11-29
+# (twelfth session, the tests' XLA flags) failed these cells, the first three on 374ac78 too (before the LM change of
+# 37c07d7), with the same numbers. The fits are barely identifiable: fourbar2d-laser_range's estimate has a scaled
+# condition number of 1e8 and moves j1.a, j4.a, j5.a by 0.10-0.26 m. Whether it converges is decided by round-off:
+# 374ac78 converged, 37c07d7 stops 4 of its 24 fold solves and its last stage at 200 steps (485 iterations); with
+# XLA's default flags, or with the LM's start damping at 1e-7 or 1e-8, 37c07d7 converges too.
+ROUND_TRIP_XFAIL: dict = {
+    ("fourbar2d", "theodolite"): "identify does not converge (373 iterations; 374ac78 and 37c07d7)",
+    ("fourbar2d", "laser_range"): "identify does not converge under the tests' XLA flags (485 iterations; 374ac78 converged)",
+    ("fourbar3d", "theodolite"): "held-out RMS 1.9e-2 against noise 1.2e-5 (374ac78 and 37c07d7)",
+    ("fourbar3d", "laser_range"): "held-out RMS 5.4e-5 against noise 8.4e-6 (374ac78 and 37c07d7)",
+}
 
 
 def _full_point(name, kind):
@@ -108,8 +119,8 @@ def test_monte_carlo_runs_and_is_finite(robot_name, device_kind):
     assert mc.estimates.shape == (4, len(mc.names)) and np.all(np.isfinite(mc.estimates))
 
 
-# The core's data Jacobian (`core.data_residual_and_jacobian`): reverse mode sample by sample for open chains,
-# forward mode through closures; one open-chain cell per device by default.
+# The core's data Jacobian (`core.data_residual_and_jacobian`): reverse mode sample by sample, for a closed mechanism
+# after its closure is solved for the batch (`RobotDevice.presolve`); one open-chain cell per device by default.
 CORE_JACOBIAN_FAST = [("mrr1", "position"), ("stanford", "pose"), ("ur10", "orientation"), ("tiago_arm", "three_point"),
                       ("talos_left_arm", "theodolite"), ("mrr1", "laser_range"), ("stanford", "multi_position")]
 # (fourbar2d-position, ~20 s, runs with the slow tests: test_core.py checks the solver's Jacobian on the four-bar)
@@ -123,7 +134,7 @@ def test_core_jacobian_is_jacfwd(robot_name, device_kind, monkeypatch):
 
     rb, dev = robot(robot_name), device(device_kind)
     model = core.RobotDevice(rb, dev)
-    assert core.jacobian_mode(model) == ("reverse" if rb.closure is None else "forward")
+    assert core.jacobian_mode(model) == "reverse"  # closed mechanisms too, since their presolve (2026-11-27)
     x = jnp.asarray(_full_point(robot_name, device_kind))
     q = jnp.asarray(configurations(robot_name, 10))
     y = jax.vmap(dev.read, (0, None))(jc.forward(rb, x[:rb.n_params], q), x[rb.n_params:])
