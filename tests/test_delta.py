@@ -98,6 +98,35 @@ def test_geometric_newton_jacobian_matches_jacfwd(rb):
     assert float(jnp.max(jnp.abs(J - J_ad))) < 1e-12
 
 
+def test_newton_state_carries_the_residual_and_jacobian_of_its_point(rb):
+    """`dl._newton_step` reuses its trial point's F and J as the next state's: after a full step and after halved
+    ones (the gimbal-lock setting of the test below, from its start) the state's F and J are those at its x, and an
+    inactive step returns the state unchanged. The Newton it drives reaches max |F| <= NEWTON_TOL there."""
+    a = jc.perturb(rb, 1e-3, seed=1)
+    q = jnp.asarray(jc.random_configurations(rb, 125, seed=2))[35]
+    qj = dl.joint_variables(rb, a, q)
+    st = dl._statics(rb, a)
+    fixed = dl._fixed(rb, st, qj)
+    x0, _ = dl._start(rb, st, qj, fixed)
+    s = dl._newton_start(rb, st, fixed, x0)
+    step = jax.jit(lambda s, active: dl._newton_step(rb, st, fixed, s, active))
+    halved = False
+    for _ in range(4):
+        new = step(s, True)
+        halved |= bool(jnp.sum(new.F**2) < jnp.sum(s.F**2)) and not np.allclose(new.x, s.x - dl.solve_small(s.J, s.F))
+        F, J = dl._residual_and_jacobian(rb, st, fixed, new.x)
+        np.testing.assert_allclose(new.F, F, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(new.J, J, rtol=1e-13, atol=1e-15)
+        assert int(new.evals) == int(s.evals) + 1
+        s = new
+    assert halved, "no step was cut: the start is inside Newton's basin"
+    same = step(s, False)
+    for got, want in zip(same, s):
+        np.testing.assert_array_equal(got, want)
+    x, err, evals = jax.jit(lambda x0: dl._newton(rb, st, fixed, x0))(x0)
+    assert float(err) <= dl.NEWTON_TOL and int(evals) <= dl.NEWTON_STEPS, (err, evals)
+
+
 def test_infeasible_geometry_is_flagged_and_finite(rb):
     """A rod of 0.2 m cannot reach the nacelle: every sample is flagged, the pose stays finite and
     carries FAIL_OFFSET (so a fit step into such a geometry is rejected)."""

@@ -34,6 +34,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import warnings
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -308,36 +309,53 @@ def _residual_and_jacobian(robot, st, fixed, x):
     return dist - fixed["lengths"], jnp.einsum("kc,kjc->kj", n, moves)
 
 
+class NewtonState(NamedTuple):
+    """Damped Newton on the sphere system at the point x: F(x), dF/dx and the points evaluated so far (x included)."""
+
+    x: jnp.ndarray
+    F: jnp.ndarray
+    J: jnp.ndarray
+    evals: jnp.ndarray
+
+
+def _newton_start(robot, st, fixed, x0) -> NewtonState:
+    return NewtonState(x0, *_residual_and_jacobian(robot, st, fixed, x0), jnp.asarray(1))
+
+
+def _newton_more(s: NewtonState):
+    """Whether Newton goes on from s: max |F| above NEWTON_TOL (a non-finite F stops it) and fewer than NEWTON_STEPS
+    points evaluated."""
+    return (jnp.max(jnp.abs(s.F)) > NEWTON_TOL) & (s.evals < NEWTON_STEPS)
+
+
+def _newton_step(robot, st, fixed, s: NewtonState, active=True) -> NewtonState:
+    """One damped step from s: x - t J^-1 F with t = 1 halved while |F| does not fall (at most NEWTON_HALVINGS
+    times). The trial point's F and J are the next state's, so a full step costs one evaluation. active: False
+    returns s and skips the halvings (a lane of a batch that has stopped: under vmap its halvings would run for the
+    others)."""
+    d = solve_small(s.J, s.F)
+    f0 = jnp.sum(s.F**2)
+
+    def trial(t):
+        return (t, *_residual_and_jacobian(robot, st, fixed, s.x - t * d))
+
+    def worse(c):
+        t, F, _ = c
+        return active & (jnp.sum(F**2) >= f0) & (t > 0.5**NEWTON_HALVINGS)
+
+    t, F, J = jax.lax.while_loop(worse, lambda c: trial(0.5 * c[0]), trial(jnp.asarray(1.0, s.x.dtype)))
+    return jax.tree_util.tree_map(lambda n, o: jnp.where(active, n, o), NewtonState(s.x - t * d, F, J, s.evals + 1), s)
+
+
 def _newton(robot, st, fixed, x0):
-    """Damped Newton on the square 5 x 5 sphere system until max |F| <= NEWTON_TOL (at most NEWTON_STEPS):
-    (x, max |F| at the last point evaluated, iterations). Each step is x - t J^-1 F with t = 1 halved until |F|
-    falls (at most NEWTON_HALVINGS times): full steps near a root, so quadratic convergence there, and no
+    """Damped Newton on the square 5 x 5 sphere system until max |F| <= NEWTON_TOL (at most NEWTON_STEPS points
+    evaluated): (x, max |F| at x, points evaluated). Each step is x - t J^-1 F with t = 1 halved until |F| falls (at
+    most NEWTON_HALVINGS times, `_newton_step`): full steps near a root, so quadratic convergence there, and no
     divergence from a start outside Newton's basin (near the ball joint's gimbal lock plain Newton left 8 steps at
     |x - x0| ~ 3.8e3 rad where the damped one closed in 9)."""
-
-    def norm2(x):
-        return jnp.sum(_sphere_residual(robot, st, fixed, x) ** 2)
-
-    def step(carry):
-        x, _, i = carry
-        F, J = _residual_and_jacobian(robot, st, fixed, x)
-        err = jnp.max(jnp.abs(F))
-        d = solve_small(J, F)
-        f0 = jnp.sum(F**2)
-
-        def halve(c):
-            t, _, k = c
-            return 0.5 * t, norm2(x - 0.5 * t * d), k + 1
-
-        t = jax.lax.while_loop(lambda c: (c[1] >= f0) & (c[2] < NEWTON_HALVINGS), halve,
-                               (jnp.asarray(1.0, x.dtype), norm2(x - d), 0))[0]
-        return jnp.where(err > NEWTON_TOL, x - t * d, x), err, i + 1
-
-    def more(carry):
-        _, err, i = carry
-        return (err > NEWTON_TOL) & (i < NEWTON_STEPS)
-
-    return jax.lax.while_loop(more, step, (x0, jnp.inf, 0))
+    s = jax.lax.while_loop(_newton_more, lambda s: _newton_step(robot, st, fixed, s, _newton_more(s)),
+                           _newton_start(robot, st, fixed, x0))
+    return s.x, jnp.max(jnp.abs(s.F)), s.evals
 
 
 def _homotopy_residual(robot, a, q):
@@ -397,8 +415,8 @@ def _near(nacelle: Pose, start: Pose):
 def _fast_single(robot, a, q):
     """The fast path for one actuator vector q (3,) (a, q without derivative): the nominal
     direct-solution start x0, Newton's result, whether the fast path is trusted (closed, and its nacelle `_near`
-    the start's, i.e. on the nominal branch), whether it closed at all, and whether the
-    reduction applies (`structure_ok`, nominal direct solution feasible)."""
+    the start's, i.e. on the nominal branch), whether it closed at all, whether the
+    reduction applies (`structure_ok`, nominal direct solution feasible), and the points Newton evaluated."""
     st = _statics(robot, a)
     fixed = _fixed(robot, st, q)
     x0, ok_start = _start(robot, st, q, fixed)
