@@ -414,19 +414,20 @@ def test_solver_compile_options_are_used_on_cpu_and_left_out_where_unknown(monke
         core.compile_solver(lowered, False)
 
 
-def test_open_chain_solvers_compile_without_ynnpack_and_closed_mechanisms_with(monkeypatch):
-    """An open chain's solver leaves XLA:CPU's dots to XLA (OPEN_CHAIN_CPU_OPTIONS: no `__ynn_fusion` library calls);
-    a closed mechanism's keeps jaxlib's default; a jaxlib that does not know the option compiles with the others."""
+def test_solvers_of_open_chains_and_the_delta_compile_without_ynnpack_other_closed_mechanisms_with(monkeypatch):
+    """An open chain's solver, and the Delta's, leave XLA:CPU's dots to XLA (XLA_DOTS_CPU_OPTIONS: no `__ynn_fusion`
+    library calls); the other closed mechanisms keep jaxlib's default (`core.xla_dots`); a jaxlib that does not know
+    the option compiles with the others."""
     import jax
     import jax.numpy as jnp
 
     lowered = jax.jit(lambda a, b: jnp.tanh(a @ b)).lower(jnp.ones((64, 64)), jnp.ones((64, 64)))
     default_uses_ynn = "__ynn_fusion" in lowered.compile().as_text()
-    assert "__ynn_fusion" not in core.compile_solver(lowered, False, open_chain=True).as_text()
-    assert ("__ynn_fusion" in core.compile_solver(lowered, False, open_chain=False).as_text()) == default_uses_ynn
-    monkeypatch.setattr(core, "OPEN_CHAIN_CPU_OPTIONS", {"xla_cpu_no_such_option_of_jaxcal": ""})
-    np.testing.assert_allclose(core.compile_solver(lowered, False, open_chain=True)(jnp.eye(64), jnp.eye(64)),
+    assert "__ynn_fusion" not in core.compile_solver(lowered, False, own_dots=True).as_text()
+    assert ("__ynn_fusion" in core.compile_solver(lowered, False, own_dots=False).as_text()) == default_uses_ynn
+    monkeypatch.setattr(core, "XLA_DOTS_CPU_OPTIONS", {"xla_cpu_no_such_option_of_jaxcal": ""})
+    np.testing.assert_allclose(core.compile_solver(lowered, False, own_dots=True)(jnp.eye(64), jnp.eye(64)),
                                np.tanh(np.eye(64)))
-    stanford, delta = jc.robots.get("stanford"), jc.robots.get("delta")
-    assert not core.has_closure(core.RobotDevice(stanford, jc.measure.devices.as_device("position")))
-    assert core.has_closure(core.RobotDevice(delta, jc.measure.devices.as_device("position")))
+    position = jc.measure.devices.as_device("position")
+    own = {name: core.xla_dots(core.RobotDevice(jc.robots.get(name), position)) for name in ("stanford", "delta", "fourbar2d")}
+    assert own == {"stanford": True, "delta": True, "fourbar2d": False}, own

@@ -478,25 +478,32 @@ def step_limit(n: int):
 # arm first 3.76, 3.62 -> 3.44, 3.27 s, warm 133, 124 vs 137, 115 ms; with the flag for every program, the Delta at
 # 125 positions: first 21.9 -> 17.4 s, warm 8.22 vs 7.68 s). Other backends compile with their defaults.
 CPU_COMPILE_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
-# And, for the solvers of open chains, no YNNPACK: jaxlib 0.10 hands every dot to that library
+# And, for the solvers of open chains and of the Delta, no YNNPACK: jaxlib 0.10 hands every dot to that library
 # (`xla_cpu_experimental_ynn_fusion_type` defaults to individual dots), a call of ~7 us however small the dot; 82 of
 # them were a third of the Stanford arm's residual-and-Jacobian kernels (200 positions: 1.59 -> 1.36 ms without; XLA's
-# own dots ~2.7 us each). Closed mechanisms keep it: their programs (the closure's Newton solves) compile ~2.5 s longer
-# without it (Kiwibot) for 0-8 % of run time. Measured in docs/benchmarks.md ("YNNPACK", 2026-11-29).
-OPEN_CHAIN_CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
+# own dots ~2.7 us each). The other closed mechanisms keep it (`Closure.xla_dots`): their closures' Newton solves
+# differentiate in forward mode, and without it their programs compile 0.4-3.4 s longer (four-bars, Kiwibot) for
+# 8-16 % less run time. Measured in docs/benchmarks.md ("YNNPACK", 2026-11-29; the Delta, thirteenth session).
+XLA_DOTS_CPU_OPTIONS = {"xla_cpu_experimental_ynn_fusion_type": ""}
 
 
-def has_closure(model) -> bool:
-    """Whether the residual model's robot (`RobotDevice`'s, or a gap model's) has closure joints."""
-    robot = getattr(model, "robot", None) or getattr(getattr(model, "model", None), "robot", None)
-    return robot is not None and robot.closure is not None
+def _model_robot(model):
+    """The residual model's robot (`RobotDevice`'s, or a gap model's), or None."""
+    return getattr(model, "robot", None) or getattr(getattr(model, "model", None), "robot", None)
 
 
-def compile_solver(lowered, placed: bool, open_chain: bool = False):
-    """`lowered.compile()` with CPU_COMPILE_OPTIONS (and OPEN_CHAIN_CPU_OPTIONS for an open chain's solver) when the
+def xla_dots(model) -> bool:
+    """Whether the model's solver compiles with XLA's own dots (XLA_DOTS_CPU_OPTIONS): an open chain, or a closed
+    mechanism whose closure says so (`Closure.xla_dots`)."""
+    robot = _model_robot(model)
+    return robot is None or robot.closure is None or robot.closure.xla_dots
+
+
+def compile_solver(lowered, placed: bool, own_dots: bool = False):
+    """`lowered.compile()` with CPU_COMPILE_OPTIONS (and XLA_DOTS_CPU_OPTIONS with own_dots: `xla_dots`) when the
     program runs on the default device of a CPU backend; where this jaxlib does not know an option, with fewer."""
     if not placed and jax.default_backend() == "cpu":
-        tries = [CPU_COMPILE_OPTIONS | OPEN_CHAIN_CPU_OPTIONS] if open_chain else []
+        tries = [CPU_COMPILE_OPTIONS | XLA_DOTS_CPU_OPTIONS] if own_dots else []
         for options in tries + [CPU_COMPILE_OPTIONS]:
             try:
                 return lowered.compile(compiler_options=options)
@@ -529,7 +536,7 @@ def compiled_model_solver(x0, args, model, settings: Settings, batched=(), width
     if placed:  # committed to another device: lowered for that placement, not kept across processes
         exe = compile_solver(_solve_jit.lower(x0, args, step_limit(0), **static), True)
     else:
-        exe = compile_solver(exported.lower(_solve_jit, (x0, args, step_limit(0)), static), False, not has_closure(model))
+        exe = compile_solver(exported.lower(_solve_jit, (x0, args, step_limit(0)), static), False, xla_dots(model))
     with _CACHE_LOCK:
         _COMPILED[key] = exe
         if len(_COMPILED) > _COMPILED_MAX:
