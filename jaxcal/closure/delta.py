@@ -471,6 +471,19 @@ def tracked_samples(run, qj, x0, need) -> Tracked:
     return jax.lax.while_loop(lambda state: state[0] < count, chunk, (jnp.asarray(0, order.dtype), out))[1]
 
 
+def _turned(nacelle: Pose, frames, dx) -> Pose:
+    """The nacelle after rod 1's joints turn by dx (5,) from where `frames` (their frames there, without derivative)
+    were taken, to first order: joint j turns it about its axis z_j through o_j, so by the angular velocity
+    w = sum_j dx_j z_j about the moment sum_j dx_j z_j x o_j. One chain evaluation (at x_star) serves the closure
+    residual and the tool, where evaluating the chain again at x_star + dx would double the fits' reverse pass;
+    dx is ~1e-12 rad at a closed sample, so the second-order term is ~1e-24."""
+    z = jnp.stack([f.R[:, 2] for f in frames])
+    o = jnp.stack([f.p for f in frames])
+    w = dx @ z
+    v = -(dx[:, None] * jnp.cross(z, o)).sum(axis=0)
+    return Pose(nacelle.R + jnp.cross(w, nacelle.R, axisa=0, axisb=0, axisc=0), nacelle.p + jnp.cross(w, nacelle.p) + v)
+
+
 def _finish_single(robot, a, q, x_star, on_branch, elsewhere):
     """Closed Delta for one actuator vector q (3,) from the solved rod-1 joints x_star: (rod-1
     joints x (5,), rod angles, tool Pose, ok, closure residual norm, status). x is differentiable in
@@ -484,11 +497,13 @@ def _finish_single(robot, a, q, x_star, on_branch, elsewhere):
     st_sg, fixed_sg = jax.tree_util.tree_map(jax.lax.stop_gradient, (st, fixed))
     x_star = jax.lax.stop_gradient(x_star)
     F_star, J = _residual_and_jacobian(robot, st_sg, fixed_sg, x_star)
-    # the zero step x_star - J^-1 F(x_star), which carries dx/d(a, q); J^-1 is formed without derivative, so a reverse
-    # pass meets one 5 x 5 product, not the elimination's pivoting (Delta, 125 positions: residuals and Jacobian
-    # 5.4-5.6 -> 4.9 ms)
-    x = x_star - solve_small(J, jnp.eye(J.shape[0], dtype=J.dtype)) @ _sphere_residual(robot, st, fixed, x_star)
-    nacelle = _nacelle(robot, st, fixed, x)
+    # the zero step dx = -J^-1 F(x_star), which carries dx/d(a, q); J^-1 is formed without derivative, so a reverse
+    # pass meets one 5 x 5 product, not the elimination's pivoting
+    at_star = _nacelle(robot, st, fixed, x_star)
+    pts = _closure_points(robot, st, at_star)
+    dx = -solve_small(J, jnp.eye(J.shape[0], dtype=J.dtype)) @ (jnp.linalg.norm(pts - fixed["centres"], axis=-1) - fixed["lengths"])
+    nacelle = _turned(at_star, _chain(st_sg, fixed_sg["arm1"], ROD1, x_star), dx)
+    x = x_star + dx
     rods = _rod_angles(robot, st, fixed, nacelle)
     err = jnp.linalg.norm(F_star)
     err = jnp.where(jnp.isfinite(err), err, jnp.inf)
