@@ -127,6 +127,25 @@ def test_newton_state_carries_the_residual_and_jacobian_of_its_point(rb):
     assert float(err) <= dl.NEWTON_TOL and int(evals) <= dl.NEWTON_STEPS, (err, evals)
 
 
+def test_turned_nacelle_is_the_chain_at_the_turned_joints_to_first_order(rb):
+    """`dl._turned` (the nacelle after rod 1's joints turn by dx, from the frames at x) against the chain evaluated
+    at x + dx: for dx ~ 1e-6 rad the two agree to second order (~1e-12) while the nacelle itself moves by ~1e-6."""
+    a = jc.perturb(rb, 1e-3, seed=1)
+    q = jnp.asarray(jc.random_configurations(rb, 4, seed=5))
+    dxs = 1e-6 * np.random.default_rng(0).standard_normal((4, 5))
+    for qi, dx in zip(q, dxs):
+        qj = dl.joint_variables(rb, a, qi)
+        st = dl._statics(rb, a)
+        fixed = dl._fixed(rb, st, qj)
+        x = dl._newton(rb, st, fixed, dl._start(rb, st, qj, fixed)[0])[0]
+        at_x = dl._nacelle(rb, st, fixed, x)
+        turned = dl._turned(at_x, dl._chain(st, fixed["arm1"], dl.ROD1, x), jnp.asarray(dx))
+        moved = dl._nacelle(rb, st, fixed, x + dx)
+        assert float(jnp.max(jnp.abs(moved.p - at_x.p))) > 1e-8  # the turn is not negligible at this size
+        assert float(jnp.max(jnp.abs(turned.p - moved.p))) < 1e-11
+        assert float(jnp.max(jnp.abs(turned.R - moved.R))) < 1e-11
+
+
 def test_infeasible_geometry_is_flagged_and_finite(rb):
     """A rod of 0.2 m cannot reach the nacelle: every sample is flagged, the pose stays finite and
     carries FAIL_OFFSET (so a fit step into such a geometry is rejected)."""
