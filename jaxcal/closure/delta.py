@@ -502,12 +502,14 @@ def _finish_single(robot, a, q, x_star, on_branch, elsewhere):
     at_star = _nacelle(robot, st, fixed, x_star)
     pts = _closure_points(robot, st, at_star)
     dx = -solve_small(J, jnp.eye(J.shape[0], dtype=J.dtype)) @ (jnp.linalg.norm(pts - fixed["centres"], axis=-1) - fixed["lengths"])
-    nacelle = _turned(at_star, _chain(st_sg, fixed_sg["arm1"], ROD1, x_star), dx)
     x = x_star + dx
-    rods = _rod_angles(robot, st, fixed, nacelle)
     err = jnp.linalg.norm(F_star)
     err = jnp.where(jnp.isfinite(err), err, jnp.inf)
     ok = on_branch & (err <= CLOSURE_TOL)
+    # turned only where closed (dx ~1e-12): an unclosed sample's dx may be of any size, and its penalty pose
+    # (`failed_pose`) must stay near the robot, as the chain at x_star is, not run off along a first-order turn
+    nacelle = _turned(at_star, _chain(st_sg, fixed_sg["arm1"], ROD1, x_star), jnp.where(ok, dx, 0.0))
+    rods = _rod_angles(robot, st, fixed, nacelle)
     status = jnp.where(ok, CLOSED, jnp.where(elsewhere, OTHER_MODE, UNCLOSED))
     return x, rods, nacelle.compose(_local(st, TOOL)), ok, err, status
 
