@@ -11,9 +11,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 # 0.63 s; the code runs ~3x slower: 2.2 -> 7.4 ms): five closure and identify test files, two workers, fresh
 # cache, 244 -> 155 s, every test passing. The tests check results, not speed, so they compile with both; the
 # library compiles its solver with the first (`core.CPU_COMPILE_OPTIONS`) and everything else with XLA's defaults.
-# Set by the first pytest process and inherited by the workers, only where this jaxlib accepts the flags (an unknown
-# XLA flag aborts the process), never over a user's XLA_FLAGS.
-TEST_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0"
+# The slow studies are bound by running their code instead: a run that selects them keeps LLVM's default level (the
+# Delta's gap diagnosis, 6 refits of 192 positions batched: an LM step 0.55 s at level 2, 2.6 s at level 0, and the
+# test past its 1 h watchdog). Set by the first pytest process (`pytest_configure`, before any program is compiled)
+# and inherited by the workers, only where this jaxlib accepts the flags (an unknown XLA flag aborts the process),
+# never over a user's XLA_FLAGS.
+FAST_RUN_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0"
+SLOW_RUN_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false"
 
 
 def _xla_accepts(flags: str) -> bool:
@@ -25,8 +29,6 @@ def _xla_accepts(flags: str) -> bool:
         return False
 
 
-if "XLA_FLAGS" not in os.environ and _xla_accepts(TEST_XLA_FLAGS):
-    os.environ["XLA_FLAGS"] = TEST_XLA_FLAGS
 # A test bound by running its compiled code rather than by compiling it takes its own jitted functions back to LLVM's
 # level 2: `jax.jit(f, compiler_options=OPTIMISED)` overrides the flag for that function (the Delta closure against its
 # slow numpy reference, one process, no cache: 27.7 -> 17.4 s).
@@ -40,19 +42,10 @@ OPTIMISED = {"xla_backend_optimization_level": 2}
 # JAXCAL_CACHE=0 turns it off.
 TEST_CACHE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".cache", "test-xla")
 TEST_CACHE_DAYS = 7
-if "JAXCAL_CACHE" not in os.environ:
-    os.makedirs(TEST_CACHE, exist_ok=True)
-    os.environ["JAXCAL_CACHE"] = TEST_CACHE  # before jaxcal is imported: it reads JAXCAL_CACHE then
-    from jaxcal.xla_cache import remove_unused  # noqa: E402
-
-    remove_unused(TEST_CACHE, TEST_CACHE_DAYS * 86400.0)
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
-
-import jaxcal  # noqa: E402,F401  (float64)
-from jaxcal import compiled  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
@@ -70,14 +63,34 @@ MAX_MAPPED_REGIONS = 30_000
 
 @pytest.fixture(autouse=True)
 def _drop_compiled_code_near_the_mapping_limit():
+    from jaxcal import compiled
+
     yield
     if compiled.mapped_regions() > MAX_MAPPED_REGIONS:
         compiled.clear()
 
 
+def run_xla_flags(markexpr: str) -> str:
+    """XLA flags of a run selecting the tests `markexpr` (pytest's -m): level 0 for the fast suite only."""
+    return FAST_RUN_XLA_FLAGS if markexpr.replace('"', "'").strip() in ("not slow", "'not slow'") else SLOW_RUN_XLA_FLAGS
+
+
 def pytest_configure(config):
-    """Keep a handle on the real stderr (output capture is suspended while configuring) for the dumps."""
+    """Set the run's XLA flags (`run_xla_flags`) and its cache folder (TEST_CACHE), both before jaxcal is imported
+    (importing it starts JAX's CPU backend, which reads XLA_FLAGS, and jaxcal reads JAXCAL_CACHE), then keep a handle on
+    the real stderr (output capture is suspended while configuring) for the dumps."""
     global _watchdog_fd
+    flags = run_xla_flags(config.option.markexpr or "")
+    if "XLA_FLAGS" not in os.environ and _xla_accepts(flags):
+        os.environ["XLA_FLAGS"] = flags
+    if "JAXCAL_CACHE" not in os.environ:
+        os.makedirs(TEST_CACHE, exist_ok=True)
+        os.environ["JAXCAL_CACHE"] = TEST_CACHE
+        from jaxcal.xla_cache import remove_unused
+
+        remove_unused(TEST_CACHE, TEST_CACHE_DAYS * 86400.0)
+    import jaxcal  # noqa: F401  (float64)
+
     _watchdog_fd = os.dup(2)
 
 

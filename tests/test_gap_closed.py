@@ -14,7 +14,7 @@ from conftest import central_fd, rel_err
 
 import jaxcal as jc
 from jaxcal.closure import delta as dl
-from jaxcal.gap.closed import CLOSED_EFFECTS, PLATFORM_MASS, delta_workspace, platform_load
+from jaxcal.gap.closed import CLOSED_EFFECTS, PLATFORM_MASS, delta_workspace, platform_load, platform_loads
 from jaxcal.gap.effects import gap_model, residuals
 from jaxcal.gap.fit import covariate_matrix
 from jaxcal.gap.simulate import add_noise, effect_vector, readings
@@ -69,8 +69,8 @@ def test_actuator_effects_are_the_closed_forward_at_corrected_inputs(delta, mode
 
 
 def test_platform_load_matches_the_nominal_direct_solution(delta):
-    """tau_j = m g_hat . dP/dtheta_j: the closed Table 4.6 model (jacfwd through the closure) against central
-    differences of the independent nominal direct solution (eq 2.135-2.146). Table 4.6 rounds the nacelle
+    """tau_j = m g_hat . dP/dtheta_j: the closed Table 4.6 model (jacfwd through the closure; sample by sample and for
+    the batch) against central differences of the independent nominal direct solution (eq 2.135-2.146). Table 4.6 rounds the nacelle
     points to 4 digits (P off by <= 4e-5 m), so the two agree to ~1e-4 relative, not to rounding."""
     q = delta_workspace(N_SMALL, seed=5)
     tau = np.asarray(jax.vmap(functools.partial(platform_load, delta))(jnp.asarray(q)))
@@ -82,6 +82,8 @@ def test_platform_load_matches_the_nominal_direct_solution(delta):
     rel = rel_err(tau, fd)
     assert rel < 1e-3, rel
     assert np.all(np.abs(fd) > 0.05)  # a load worth modelling on every actuator
+    # the batch's loads (closure solved once for the batch, then each sample's implicit step): the same numbers
+    assert np.max(np.abs(np.asarray(platform_loads(delta, jnp.asarray(q))) - tau)) < 1e-12
 
 
 @pytest.mark.slow  # ~33 s (CI time); the thermal effect's gradient through the closure is checked fast below

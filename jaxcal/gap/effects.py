@@ -133,25 +133,34 @@ def open_tool_pose(model: GapModel, x, q, cov):
     return jnp.stack([r for r, _ in poses]), jnp.stack([t for _, t in poses])
 
 
-def tool_pose(model: GapModel, x, q, cov):
-    """Tip pose (R, p) in the robot base frame with the robot-side effects, open chain or closed loop."""
+def tool_pose(model: GapModel, x, q, cov, load=None):
+    """Tip pose (R, p) in the robot base frame with the robot-side effects, open chain or closed loop (load: a
+    closed loop's actuator load, `closed.tool_pose`)."""
     if model.robot.closure is not None:
-        return closed.tool_pose(model, x, q, cov)
+        return closed.tool_pose(model, x, q, cov, load)
     return open_tool_pose(model, x, q, cov)
 
 
-def read(model: GapModel, x, q, cov):
+def read(model: GapModel, x, q, cov, load=None):
     """Predicted device reading of one sample with every effect at the values in x."""
     nr, ng = model.robot.n_params, model.n_geometry
-    R, p = tool_pose(model, x, q, cov)
+    R, p = tool_pose(model, x, q, cov, load)
     return reading_effects(model, x[ng:], model.device.read(Pose(R, p), x[nr:ng]), cov)
+
+
+def read_batch(model: GapModel, x, q, cov):
+    """`read` of every sample (N, ...); a closed loop's actuator loads computed for the batch first
+    (`closed.actuator_loads`: they do not depend on x)."""
+    loads = closed.actuator_loads(model, q) if model.robot.closure is not None else None
+    if loads is None:
+        return jax.vmap(functools.partial(read, model, x))(q, cov)
+    return jax.vmap(functools.partial(read, model, x))(q, cov, loads)
 
 
 def residuals(model: GapModel, x, q, y, cov, w):
     """Weighted residuals (N, m): w * (measured - predicted), all samples."""
-    pred = jax.vmap(functools.partial(read, model, x))(q, cov)
-    return jax.vmap(model.device.residual)(pred, y) * w
+    return jax.vmap(model.device.residual)(read_batch(model, x, q, cov), y) * w
 
 
 __all__ = ["EFFECTS", "EFFECT_SCALE", "GLOBAL_EFFECTS", "JOINT_EFFECTS", "NEEDS", "GapModel", "gap_model", "gravity_loads",
-           "joint_axes", "open_tool_pose", "payload_loads", "read", "residuals", "tool_pose"]
+           "joint_axes", "open_tool_pose", "payload_loads", "read", "read_batch", "residuals", "tool_pose"]

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.gap import closed
-from jaxcal.gap.effects import carried, gravity_loads, joint_axes, payload_loads, read, residuals, tip_bodies
+from jaxcal.gap.effects import carried, gravity_loads, joint_axes, payload_loads, read_batch, residuals, tip_bodies
 from jaxcal.gap.model import GapModel
 from jaxcal.kin.model import frames_single, joint_variables
 
@@ -123,7 +123,7 @@ def jacobians(xs, q, y, cov, w, *, model):
 @functools.partial(jax.jit, static_argnames=("model",))
 def predict(x, q, cov, *, model):
     """Predicted readings (N, ...) at x."""
-    return jax.vmap(functools.partial(read, model, x))(q, cov)
+    return read_batch(model, x, q, cov)
 
 
 @functools.partial(jax.jit, static_argnames=("model",))
