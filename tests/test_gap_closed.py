@@ -83,7 +83,7 @@ def test_platform_load_matches_the_nominal_direct_solution(delta):
     assert rel < 1e-3, rel
     assert np.all(np.abs(fd) > 0.05)  # a load worth modelling on every actuator
     # the batch's loads (closure solved once for the batch, then each sample's implicit step): the same numbers
-    assert np.max(np.abs(np.asarray(platform_loads(delta, jnp.asarray(q))) - tau)) < 1e-12
+    assert np.max(np.abs(np.asarray(jax.jit(functools.partial(platform_loads, delta))(jnp.asarray(q))) - tau)) < 1e-12
 
 
 @pytest.mark.slow  # ~33 s (CI time); the thermal effect's gradient through the closure is checked fast below
