@@ -13,9 +13,9 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 # library compiles its solver with the first (`core.CPU_COMPILE_OPTIONS`) and everything else with XLA's defaults.
 # The slow studies are bound by running their code instead: a run that selects them keeps LLVM's default level (the
 # Delta's gap diagnosis, 6 refits of 192 positions batched: an LM step 0.55 s at level 2, 2.6 s at level 0; its
-# backlash test was stopped unfinished after 36-58 min at level 0 and took 17.6 min at level 2, machine loaded). Set by the first pytest process (`pytest_configure`, before any program is compiled)
-# and inherited by the workers, only where this jaxlib accepts the flags (an unknown XLA flag aborts the process),
-# never over a user's XLA_FLAGS.
+# backlash test was stopped unfinished after 36-58 min at level 0 and took 17.6 min at level 2, machine loaded).
+# Set by the first pytest process (`pytest_configure`, before any program is compiled) and inherited by the workers,
+# only where this jaxlib accepts the flags (an unknown XLA flag aborts the process), never over a user's XLA_FLAGS.
 FAST_RUN_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=0"
 SLOW_RUN_XLA_FLAGS = "--xla_cpu_use_fusion_emitters=false"
 
