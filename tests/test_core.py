@@ -396,6 +396,50 @@ def test_jacobian_from_the_solver_program_is_jacfwd_and_predicted_is_readings(na
     np.testing.assert_allclose(mine.x, theirs.x, rtol=0, atol=1e-8)
 
 
+@pytest.mark.parametrize("name", ["stanford", "fourbar2d"])
+def test_a_solve_given_its_start_is_the_solve_that_evaluates_it(name):
+    """`core.solve` given start = (r, J) at x0 skips the solver's first evaluation and is otherwise the same run: the
+    same steps, estimate (1e-10 absolute: the solver stops at 1e-8 typical sizes of 1 cm or 0.01 rad, and the start
+    differs from the evaluated one by round-off; measured 7e-12) and cost (relative 1e-9), for a bias stage from
+    where the last stage ended (x0 is not the prior ref: `Solution.read`), a fit of device entries alone (the robot's
+    columns 0: `Problem.residual_and_jacobian` with those columns) and a fold (`core.reweighted` from the whole
+    problem's). The read's r is `Problem.residuals`; a fold cannot take the start of a problem that left out a sample
+    it weights, and a start off the prior on the entries the solve holds is refused."""
+    rb = jc.robots.get(name)
+    dev = jc.make_device("position")
+    a = np.concatenate([np.asarray(jc.perturb(rb, 1e-3, seed=2)), far_frame(dev)])
+    q = jc.random_configurations(rb, 12, seed=3)
+    y = np.asarray(core.readings(rb, dev, a, q)) + 1e-4 * np.sin(np.arange(36.0)).reshape(12, 3)
+    w = np.full((12, 3), 1e3)
+    problem = core.Problem(rb, dev, q, y, w, np.ones(len(a), bool), a, np.full(len(a), -np.inf), np.full(len(a), np.inf))
+    settings = core.Settings()
+
+    def same_run(given, evaluated):
+        assert given.steps == evaluated.steps > 0 and given.converged == evaluated.converged
+        np.testing.assert_allclose(given.x, evaluated.x, rtol=0, atol=1e-10)
+        assert abs(given.cost - evaluated.cost) <= 1e-9 * evaluated.cost
+
+    r, J = problem.residual_and_jacobian(a)
+    np.testing.assert_allclose(r, problem.residuals(a), rtol=0, atol=1e-12 * np.max(w))  # 1e-12 m of a reading
+    est = np.arange(0, len(a), 3)
+    first = core.solve(problem, a, est, settings, start=(r, J))
+    same_run(first, core.solve(problem, a, est, settings))
+    same_run(core.solve(problem, first.x, est, settings, mu=1e-2, ref=a, start=first.read),
+             core.solve(problem, first.x, est, settings, mu=1e-2, ref=a))
+    dev_cols = np.arange(rb.n_params, len(a))
+    moved = a.copy()
+    moved[dev_cols[:3]] += 0.02
+    held = problem.residual_and_jacobian(moved, dev_cols)
+    same_run(core.solve(problem, moved, dev_cols, settings, start=held), core.solve(problem, moved, dev_cols, settings))
+    fold_w = w.copy()
+    fold_w[::4] = 0.0
+    fold = problem.with_weights(fold_w)
+    same_run(core.solve(fold, a, est, settings, start=core.reweighted((r, J), w, fold_w)), core.solve(fold, a, est, settings))
+    assert core.reweighted((r, J), fold_w, w) is None
+    with pytest.raises(ValueError, match="entries not estimated"):
+        core.solve(problem, first.x + 1e-3, est, settings, ref=a, start=first.read)
+
+
 def test_solver_compile_options_are_used_on_cpu_and_left_out_where_unknown(monkeypatch):
     """`compile_solver` compiles with CPU_COMPILE_OPTIONS on the CPU backend; a jaxlib that does not know one of
     them gets the program compiled without (not an error); another compile error is not swallowed."""

@@ -206,9 +206,9 @@ def test_bias_path_stops_once_the_held_out_score_has_risen_for_patience_stages(m
     curve = dict(zip(bias.BIAS_PATH, (5.0, 3.0, 4.0, 6.0, 1.0, 0.5)))
     calls = []
 
-    def solve(problem, x, estimated, settings, mu, ref):
+    def solve(problem, x, estimated, settings, mu, ref, start=None):
         calls.append(mu)
-        return SimpleNamespace(x=mu, converged=mu != 1e-3)  # the "estimate" is mu; its held-out score is curve[mu]
+        return SimpleNamespace(x=mu, converged=mu != 1e-3, read=None)  # the "estimate" is mu; its held-out score is curve[mu]
 
     class Problem:
         used, q = np.ones(8, bool), np.zeros((8, 1))
@@ -223,7 +223,7 @@ def test_bias_path_stops_once_the_held_out_score_has_risen_for_patience_stages(m
             return np.array([np.sqrt(curve[mu] / bias.BIAS_FOLDS)])
 
     monkeypatch.setattr(bias.core, "solve", solve)
-    cal = SimpleNamespace(x_frames=None, estimated=np.arange(3))
+    cal = SimpleNamespace(x_frames=None, estimated=np.arange(3), r0=None, J0=None)
     schedule, scores, record = bias.choose_bias(Problem(np.ones((8, 1))), cal, None)
     np.testing.assert_allclose(scores[:4], [5.0, 3.0, 4.0, 6.0])
     assert np.all(np.isnan(scores[4:])) and len(calls) == 4 * bias.BIAS_FOLDS

@@ -73,7 +73,7 @@ def weakest_standard_error(cal: core.Calibration) -> float:
     p = cal.problem
     r = np.asarray(core.weighted_residuals(p.robot, p.device, cal.x, p.q, p.y, p.w))[p.used]
     sigma2 = float(np.sum(r**2)) / max(r.size - est.size, 1)
-    return _weakest(cal.J[:, est] * core.x_scale(p.units)[est], sigma2)
+    return _weakest(cal.R[:, est] * core.x_scale(p.units)[est], sigma2)  # R^T R = J^T J
 
 
 def clearly_noise_dominated(problem: core.Problem, x, J, estimated) -> bool:
@@ -119,18 +119,20 @@ def heldout_scores(problem: core.Problem, cal: core.Calibration, settings: core.
     held = [fold == b for b in range(folds)]
     trains = [problem.with_weights(problem.w * (~h)[:, None]) for h in held]
     xs = [cal.x_frames] * folds
+    whole = None if cal.r0 is None else (cal.r0, cal.J0)
+    reads = [core.reweighted(whole, problem.w, t.w) for t in trains]  # each fold's (r, J) at its start: `core.solve`'s
     scores = np.full(len(path), np.nan)
 
     unconverged = solves = 0
 
-    def stage(b: int, mu: float) -> tuple[np.ndarray, float, bool]:  # fold b's next stage, its held-out score
-        sol = core.solve(trains[b], xs[b], cal.estimated, settings, mu, ref=cal.x_frames)
+    def stage(b: int, mu: float) -> tuple[np.ndarray, tuple | None, float, bool]:  # fold b's next stage, its held-out score
+        sol = core.solve(trains[b], xs[b], cal.estimated, settings, mu, ref=cal.x_frames, start=reads[b])
         r = trains[b].with_weights(problem.w * held[b][:, None]).residuals(sol.x)  # held-out samples, the fits' shape
-        return sol.x, float(np.sum(np.asarray(r) ** 2)), bool(sol.converged)
+        return sol.x, sol.read, float(np.sum(np.asarray(r) ** 2)), bool(sol.converged)
 
     with concurrent.futures.ThreadPoolExecutor(fold_workers(folds)) as pool:
         for k, mu in enumerate(path):
-            xs, held_out, converged = zip(*pool.map(stage, range(folds), [mu] * folds))
+            xs, reads, held_out, converged = zip(*pool.map(stage, range(folds), [mu] * folds))
             scores[k] = sum(held_out)  # in fold order: the same sum as one fold after another
             unconverged, solves = unconverged + converged.count(False), solves + folds
             if k - least_stage(scores[:k + 1]) >= patience:

@@ -103,7 +103,7 @@ def scaled_condition(cal: core.Calibration) -> float | None:
     """Condition number of the Jacobian of the estimated columns, each at its typical size (`core.x_scale`)."""
     if not len(cal.estimated):
         return None
-    Js = cal.J[:, cal.estimated] * core.x_scale(cal.problem.units)[cal.estimated]
+    Js = cal.R[:, cal.estimated] * core.x_scale(cal.problem.units)[cal.estimated]  # J's singular values
     s = np.linalg.svd(Js, compute_uv=False)
     return float(s[0] / max(s[-1], 1e-300))
 

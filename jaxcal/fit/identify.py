@@ -453,7 +453,7 @@ def identify(
     before_p, before_o = _rms_mm(problem, cal.x_frames)
     after_p, after_o = _rms_mm(problem, cal.x)
     est_idx = cal.estimated
-    Je = cal.J[:, est_idx]
+    Je = cal.R[:, est_idx]  # J's triangular factor: J's covariance and singular directions (`core.triangular`)
     r_final = core.weighted_residuals(robot, device, cal.x, problem.q, problem.y, problem.w).reshape(-1)
     readings = int(np.sum(problem.w != 0))
     mu_end = core.bias_schedule(bias_info.get("bias_schedule", None if isinstance(bias, str) else bias))[-1]
@@ -526,7 +526,7 @@ def _polished_covariance(cal: core.Calibration, r, readings: int, names) -> tupl
     held parameters are not at their true values."""
     added = np.asarray(cal.polish["added_index"], int)  # the held parameters the stage solved (`core.polish`)
     cols = np.sort(np.concatenate([cal.estimated, added]))
-    C, _ = _covariance(cal.J[:, cols], core.POLISH_BIAS, cal.problem.x_scale[cols], r, readings)
+    C, _ = _covariance(cal.R[:, cols], core.POLISH_BIAS, cal.problem.x_scale[cols], r, readings)
     pos = np.searchsorted(cols, cal.estimated)
     se = np.sqrt(np.maximum(np.diag(C), 0.0))
     return C[np.ix_(pos, pos)], {names[c]: float(se[k]) for k, c in enumerate(cols) if c in set(added.tolist())}

@@ -212,15 +212,24 @@ def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first, fre
                    jnp.where(moved, delta, s.last), jnp.where(moved, r_new - s.r - J @ step_taken, s.bend))
 
 
+def starting_with(rj: Callable, start, first) -> Callable:
+    """rj, but on the loop's first turn (`advance`'s first, which evaluates z0) with start = (r0, J0, given) and given
+    true: (r0, J0), the residual and Jacobian at z0 that the caller already has (a solve that begins where the last
+    one, or a Jacobian read, ended), instead of evaluating them again."""
+    r0, J0, given = start
+    return lambda z, args: jax.lax.cond(first & given, lambda: (r0, J0), lambda: rj(z, args))
+
+
 def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: float,
-                  jac: Callable | None = None, limit=None, free=None, width: int | None = None) -> LMResult:
+                  jac: Callable | None = None, limit=None, free=None, width: int | None = None, start=None) -> LMResult:
     """Minimise |fn(z, args)|^2 from z0 by Levenberg-Marquardt (see the module docstring); jac as in `init`.
     The loop's first turn evaluates r and J at z0 (`advance` with first=True). limit: a traced cap on the
     iterations below max_steps (max_steps sizes the history, so it is static); 0 returns r and J at z0, which is
     how the core evaluates its Jacobian with the solver's executable instead of compiling the Jacobian again.
     free: 0/1 per unknown (traced): only those move, the others' columns of J are left out of every step (None:
     all move); the returned J has every column, so that a caller who fits some unknowns gets the Jacobian of all
-    at the solution without evaluating it again. width: `advance`'s (static)."""
+    at the solution without evaluating it again. width: `advance`'s (static). start: (r0, J0, given) with given
+    (traced) true: r and J at z0, not evaluated again (`starting_with`)."""
     cap = max_steps if limit is None else jnp.minimum(max_steps, limit)
     rj = jac or functools.partial(residual_and_jacobian, fn)
     r_shape, J_shape = jax.eval_shape(rj, z0, args)
@@ -230,7 +239,7 @@ def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: 
 
     def body(carry):
         s, hist, first = carry
-        s = advance(rj, s, args, rtol, atol, first, free, width)
+        s = advance(rj if start is None else starting_with(rj, start, first), s, args, rtol, atol, first, free, width)
         return s, hist.at[s.steps].set(s.r @ s.r), jnp.asarray(False)
 
     s, hist, _ = jax.lax.while_loop(lambda c: c[2] | (~c[0].converged & (c[0].steps < cap) & (c[0].lam < LAM_MAX)),
@@ -246,10 +255,10 @@ class LevenbergMarquardt:
     atol: float
 
     def __call__(self, fn: Callable, z0, args, max_steps: int, jac: Callable | None = None, limit=None, free=None,
-                 width: int | None = None) -> LMResult:
+                 width: int | None = None, start=None) -> LMResult:
         return least_squares(fn, z0, args, max_steps=max_steps, rtol=self.rtol, atol=self.atol, jac=jac, limit=limit,
-                             free=free, width=width)
+                             free=free, width=width, start=start)
 
 
 __all__ = ["LMResult", "LMState", "LevenbergMarquardt", "damped_factor", "damped_step", "secant_acceleration",
-           "init", "initial_damping", "least_squares", "residual_and_jacobian", "step", "step_columns", "advance"]
+           "init", "initial_damping", "least_squares", "residual_and_jacobian", "starting_with", "step", "step_columns", "advance"]
