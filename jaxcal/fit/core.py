@@ -978,12 +978,14 @@ def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, 
     return Solution(x, bool(ok), int(steps), float(cost), dt, history[np.isfinite(history)], np.asarray(estimated, int), J, r)
 
 
-def solve_batch(problem: Problem, x0s, args, settings: Settings, batched) -> tuple:
+def solve_batch(problem: Problem, x0s, args, settings: Settings, batched, limit: int | None = None) -> tuple:
     """A vmapped batch of solves of one problem's structure: `batched` names the leading-axis entries of
-    args (and "x0" for a batch of starts; `Problem.batch_args` for folds with their own priors).
+    args (and "x0" for a batch of starts; `Problem.batch_args` for folds with their own priors); limit: at most this
+    many iterations (default settings.max_steps; the same compiled program).
     Returns (x (B, P), ok (B,), steps (B,), cost (B,), compile_s)."""
     exe, dt = compiled_model_solver(x0s, args, problem.model, settings, batched, problem.width_for(args["mask"]))
-    x, ok, steps, cost, _ = exe(x0s, args, step_limit(settings.max_steps))
+    cap = settings.max_steps if limit is None else min(limit, settings.max_steps)
+    x, ok, steps, cost, _ = exe(x0s, args, step_limit(cap))
     return np.asarray(x), np.asarray(ok), np.asarray(steps), np.asarray(cost), dt
 
 
