@@ -76,14 +76,15 @@ def weakest_standard_error(cal: core.Calibration) -> float:
     return _weakest(cal.R[:, est] * core.x_scale(p.units)[est], sigma2)  # R^T R = J^T J
 
 
-def clearly_noise_dominated(problem: core.Problem, x, J, estimated) -> bool:
-    """Whether an unconverged fit at x (J: the weighted data Jacobian there) is noise-dominated by EARLY_MARGIN:
-    `weakest_standard_error` with sigma^2 from min over delta of |r + J_e delta|^2 (the cost the linearised fit
-    reaches; below the cost at x, so the test errs toward going on with the fit)."""
+def clearly_noise_dominated(problem: core.Problem, x, J, estimated, r=None) -> bool:
+    """Whether an unconverged fit at x (J: the weighted data Jacobian there; r: the weighted residuals there, when the
+    caller has them) is noise-dominated by EARLY_MARGIN: `weakest_standard_error` with sigma^2 from min over delta of
+    |r + J_e delta|^2 (the cost the linearised fit reaches; below the cost at x, so the test errs toward going on with
+    the fit)."""
     est = np.asarray(estimated, int)
     if not est.size:
         return False
-    r = np.asarray(problem.residuals(x))
+    r = np.asarray(problem.residuals(x) if r is None else r)
     readings = r[problem.used].size
     Je = J[:, est] * core.x_scale(problem.units)[est]
     r = r.reshape(-1)

@@ -1177,11 +1177,11 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
     the all-parameter polish (`polish`, with base and final_polish).
     started: an earlier calibration of the same problem and settings, whose start (and its Jacobian) is reused.
     progress: called with a short text as each stage begins (a progress display: `jaxcal calibrate`).
-    early_stop(problem, x, J, estimated) -> bool, with early_steps > 0, for an unbiased single-stage fit by the core's
-    LM without multi-start (the optimistix solvers take no step limit): the fit runs early_steps iterations first;
-    converged by then, it goes on as without; else early_stop is asked at that point, and True returns the
-    calibration there (`stopped_early`, unconverged, no polish), False solves again from the stage's start with the
-    full step limit (the result is the one without early_stop, at the cost of early_steps iterations)."""
+    early_stop(problem, x, J, estimated, r=weighted residuals at x) -> bool, with early_steps > 0, for an unbiased
+    single-stage fit by the core's LM without multi-start (the optimistix solvers take no step limit): the fit runs
+    early_steps iterations first; converged by then, it goes on as without; else early_stop is asked at that point, and
+    True returns the calibration there (`stopped_early`, unconverged, no polish), False solves again from the stage's
+    start with the full step limit (the result is the one without early_stop, at the cost of early_steps iterations)."""
     say = progress or (lambda text: None)
     t0 = time.perf_counter()
     if started is not None and started.problem is problem:
@@ -1220,7 +1220,7 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
         elif (early_stop is not None and early_steps > 0 and bias_schedule(bias) == [0.0]
               and isinstance(make_solver(settings.solver, settings.rtol, settings.atol), LevenbergMarquardt)):
             sol = solve(problem, x, est, settings, mu, ref=x_frames, limit=early_steps, start=read)
-            if not sol.converged and sol.J is not None and early_stop(problem, sol.x, sol.J, est):
+            if not sol.converged and sol.J is not None and early_stop(problem, sol.x, sol.J, est, r=sol.r):
                 return Calibration(problem, sol.x, x_frames, est, undetermined, no_effect, regrouped, sol.J, False,
                                    frames_ok, sol.steps, registered, compile_s + sol.compile_s,
                                    time.perf_counter() - t0 - compile_s - sol.compile_s, sol.history, J0, frames_fitted,
