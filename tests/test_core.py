@@ -440,6 +440,30 @@ def test_a_solve_given_its_start_is_the_solve_that_evaluates_it(name):
         core.solve(problem, first.x + 1e-3, est, settings, ref=a, start=first.read)
 
 
+def test_the_triangular_factor_answers_for_the_jacobian_whatever_its_rank():
+    """`core.triangular` (R = Q^T J): R^T R = J^T J, the singular values and right singular vectors of any columns are
+    J's, and least squares on columns of [J r] has J's residual, also for a rank-deficient J (two columns equal, one
+    zero); `core.linear_f_ratio` on it equals the F ratio of numpy's lstsq on J itself (relative 1e-10)."""
+    rng = np.random.default_rng(3)
+    J = rng.normal(size=(300, 12)) * np.logspace(0, -6, 12)
+    J[:, 7], J[:, 9] = J[:, 2], 0.0
+    r = rng.normal(size=300)
+    R = core.triangular(J)
+    assert R.shape == (12, 12) and np.allclose(np.tril(R, -1), 0.0)
+    np.testing.assert_allclose(R.T @ R, J.T @ J, rtol=0, atol=1e-12 * np.max(np.abs(J.T @ J)))
+    cols = np.array([0, 2, 5, 7, 11])
+    np.testing.assert_allclose(np.linalg.svd(R[:, cols], compute_uv=False), np.linalg.svd(J[:, cols], compute_uv=False),
+                               rtol=1e-10, atol=1e-14)
+    T = core.triangular(np.column_stack([J, r]))
+    resid = lambda A, b: np.sum((b - A @ np.linalg.lstsq(A, b, rcond=None)[0]) ** 2)  # noqa: E731
+    assert abs(resid(T[:, cols], T[:, -1]) - resid(J[:, cols], r)) <= 1e-10 * resid(J[:, cols], r)
+    est, added = np.array([0, 1, 2, 3]), np.array([5, 7, 9])
+    Jc = J[:, np.concatenate([est, added])]
+    Jc = Jc / np.maximum(np.linalg.norm(Jc, axis=0), 1e-300)
+    direct = core.f_ratio(float(r @ r), resid(Jc, -r), len(added), 300 - 7)
+    assert abs(core.linear_f_ratio(r, J, est, added, 300 - 7) - direct) <= 1e-10 * abs(direct)
+
+
 def test_solver_compile_options_are_used_on_cpu_and_left_out_where_unknown(monkeypatch):
     """`compile_solver` compiles with CPU_COMPILE_OPTIONS on the CPU backend; a jaxlib that does not know one of
     them gets the program compiled without (not an error); another compile error is not swallowed."""
