@@ -340,6 +340,7 @@ def test_unconverged_baseline_names_no_effect():
     assert d.verdict == NOT_CONVERGED and d.joints == (), d.report()
     assert "--max-steps" in d.report() and d.to_dict()["verdict"] == NOT_CONVERGED
     assert d.timings["lm_steps"]["baseline_failed"] and not d.timings["lm_steps"]["baseline_converged"]
+    assert d.timings["lm_steps"]["refit_step_limit"] == 2  # an open chain's refit: the step limit given
 
 
 def test_an_effect_that_closes_none_of_the_gap_is_not_named():

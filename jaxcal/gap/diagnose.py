@@ -885,7 +885,8 @@ def diagnose(robot, data: Dataset, *, folds: int = 5, alpha: float = 0.01, max_e
     params = {model.names[i]: float(fit.xs[folds][i])
               for s in ([] if fit.all_data_diverged else sel.selected) for i in s.cols}
     steps = {"baseline": base.steps, "final": fit.steps, "converged": bool(np.all(base.converged) and np.all(fit.converged)),
-             "baseline_converged": not base.failed, "baseline_failed": base.failed, "max_steps": baseline_settings.max_steps}
+             "baseline_converged": not base.failed, "baseline_failed": base.failed, "max_steps": baseline_settings.max_steps,
+             "refit_step_limit": CLOSED_BASELINE_STEPS if robot.closure is not None else settings.max_steps}
     timings = {"lm_steps": steps, "solve_s": base.seconds, "linear_s": sel.seconds, "final_s": time.perf_counter() - t_fin,
                "total_s": time.perf_counter() - t0}
     plot_data = {"q": data.q, "motion": where.motion, "tips": where.tips, "oof_base": ho.oof_base * base.sigma * 1e3,
