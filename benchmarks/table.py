@@ -11,7 +11,8 @@ measured in the same process, compile time apart, medians.
   options: the whole `jc.identify` call vs scipy's MINPACK LM with finite differences on jaxcal's own compiled
   residual, same unknowns (the ones identify estimated), same start (identify's frames-only point).
 
-Writes benchmarks/results/bench.md (atomically) and prints it. Run: python benchmarks/table.py [--max-n N]
+Writes benchmarks/results/bench.md (atomically) and prints its rows as they come. Run: python benchmarks/table.py
+[--max-n N] [--parts fk,pinocchio,identify,own] [--out FILE]
 """
 
 from __future__ import annotations
@@ -37,8 +38,9 @@ from jaxcal.report import write_text_atomic
 
 def machine_line() -> str:
     load = os.getloadavg()
+    device = jax.devices()[0]
     return (f"{datetime.date.today()}, {platform.machine()}, {os.cpu_count()} CPU cores, jax {jax.__version__} on "
-            f"{jax.devices()[0].platform}, load average at the start {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}")
+            f"{device.platform} ({device.device_kind}), load average at the start {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}")
 
 
 def fk_rows(max_n: int) -> list[str]:
@@ -114,19 +116,31 @@ def own_residual_rows() -> list[str]:
     return rows
 
 
+PARTS = {"fk": fk_rows, "pinocchio": pinocchio_rows, "identify": identify_rows, "own": own_residual_rows}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--max-n", type=int, default=100_000, help="largest FK batch (default 1e5)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "bench.md"))
+    ap.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated subset of {', '.join(PARTS)} (default all)")
     args = ap.parse_args(argv)
+    parts = args.parts.split(",")
+    if unknown := sorted(set(parts) - set(PARTS)):
+        ap.error(f"--parts: unknown {', '.join(unknown)}; choose from {', '.join(PARTS)}")
     t0 = time.perf_counter()
     head = [f"Machine: {machine_line()}.", "",
             "| case | compile | jaxcal (median) | baseline, same process (median) | speed-up | other |",
             "|---|---|---|---|---|---|"]
-    rows = fk_rows(args.max_n) + pinocchio_rows() + identify_rows() + own_residual_rows()
+    print("\n".join(head), flush=True)
+    rows = []
+    for part in parts:
+        new = PARTS[part](args.max_n) if part == "fk" else PARTS[part]()
+        print("\n".join(new), flush=True)  # as they come: a run stopped part-way still shows its rows
+        rows += new
     text = "\n".join(head + rows + ["", f"Whole run {time.perf_counter() - t0:.0f} s.", ""])
     write_text_atomic(args.out, text)
-    print(text)
+    print(f"Whole run {time.perf_counter() - t0:.0f} s; written to {args.out}")
 
 
 if __name__ == "__main__":
