@@ -46,6 +46,7 @@ import optimistix as optx
 
 from jaxcal import compiled, exported
 from jaxcal.closure.core import forward_with_status
+from jaxcal.fit import buckets
 from jaxcal.fit.base import base_set
 from jaxcal.fit.csvfile import DataError
 from jaxcal.fit.lm import LevenbergMarquardt, residual_and_jacobian
@@ -117,7 +118,8 @@ def readings(robot: Robot, device: Device, a_full, q):
 
 
 @functools.partial(jax.jit, static_argnums=(0,))
-def _read_poses(device: Device, tool: Pose, d):
+def read_poses(device: Device, tool: Pose, d):
+    """The device's readings (N, ...) of the tool poses (N, ...) with device parameters d, compiled (device static)."""
     return jax.vmap(device.read, (0, None))(tool, d)
 
 
@@ -144,12 +146,13 @@ def predicted(robot: Robot, device: Device, a_full, q) -> np.ndarray:
         if key in _PREDICTED:
             _PREDICTED.move_to_end(key)
             return _PREDICTED[key]
+    q_bucket = buckets.repeat_row(q, buckets.sample_bucket(len(q)), 0)  # one program per bucket of sample counts
     if robot.closure is None:
-        out = np.asarray(readings(robot, device, a_full, q))
+        out = np.asarray(readings(robot, device, a_full, q_bucket))[:len(q)]
     else:
         device.check_robot(robot)
-        tool, _ = forward_with_status(robot, a_full[:robot.n_params], q)
-        out = np.asarray(_read_poses(device, tool, a_full[robot.n_params:]))
+        tool, _ = forward_with_status(robot, a_full[:robot.n_params], q_bucket)
+        out = np.asarray(read_poses(device, tool, a_full[robot.n_params:]))[:len(q)]
     out.flags.writeable = False
     with _CACHE_LOCK:
         _PREDICTED[key] = out
@@ -544,11 +547,13 @@ def compiled_model_solver(x0, args, model, settings: Settings, batched=(), width
     identity, so the cache is bounded). With a compilation-cache folder in use, the lowered program is kept
     there too (`jaxcal.exported`): a later process skips tracing it."""
     placed = exported.placements((x0, args))
+    if not placed:  # arrays on the default device: the program of the sample count's bucket
+        args = buckets.padded_solver_args(args, batched, zeros_placeholder)
     key = (model, settings, tuple(batched), exported.signature((x0, args)), placed, exported.lowering_config(), width)
     with _CACHE_LOCK:
         if key in _COMPILED:
             _COMPILED.move_to_end(key)
-            return _COMPILED[key], 0.0
+            return _on_bucket(_COMPILED[key], batched, placed), 0.0
     if not compile:
         return None, 0.0
     t = time.perf_counter()
@@ -561,7 +566,26 @@ def compiled_model_solver(x0, args, model, settings: Settings, batched=(), width
         _COMPILED[key] = exe
         if len(_COMPILED) > _COMPILED_MAX:
             _COMPILED.popitem(last=False)
-    return exe, time.perf_counter() - t
+    return _on_bucket(exe, batched, placed), time.perf_counter() - t
+
+
+@dataclasses.dataclass(frozen=True)
+class BucketedSolver:
+    """A compiled solver built for a sample-count bucket, called as exe(x0, args, limit) with the arguments of any
+    sample count in the bucket (`buckets.padded_solver_args`). Its r and J have the bucket's data rows, 0 past the
+    caller's, then the prior rows: callers read the data rows as the first N*m."""
+
+    exe: object
+    batched: tuple
+
+    def __call__(self, x0, args, limit):
+        return self.exe(x0, buckets.padded_solver_args(args, self.batched, zeros_placeholder), limit)
+
+
+def _on_bucket(exe, batched, placed):
+    """exe as `BucketedSolver` for arguments on the default device; placed arguments (sharded over devices) keep their
+    own shapes."""
+    return exe if placed else BucketedSolver(exe, tuple(batched))
 
 
 def evaluator(problem: "Problem", args, settings: Settings | None = None, compile: bool = True):
@@ -572,14 +596,14 @@ def evaluator(problem: "Problem", args, settings: Settings | None = None, compil
     x0 = np.zeros(len(problem.names))
     if settings is not None and isinstance(make_solver(settings.solver, settings.rtol, settings.atol), LevenbergMarquardt):
         return compiled_model_solver(x0, args, problem.model, settings, width=problem.step_width, compile=compile)
-    shapes, config = exported.signature((x0, args)), exported.lowering_config()
+    shapes, config = exported.signature((x0, buckets.padded_solver_args(args, (), zeros_placeholder))), exported.lowering_config()
     with _CACHE_LOCK:
         kept = list(reversed(_COMPILED.items()))
     for key, exe in kept:
         model, done, batched, done_shapes, placed, done_config, width = key
         if (model == problem.model and not batched and done_shapes == shapes and not placed and done_config == config
                 and width == problem.step_width and isinstance(make_solver(done.solver, done.rtol, done.atol), LevenbergMarquardt)):
-            return exe, 0.0
+            return BucketedSolver(exe, ()), 0.0
     return compiled_model_solver(x0, args, problem.model, Settings(), width=problem.step_width, compile=compile)
 
 
@@ -605,9 +629,13 @@ def model_residuals(model, x, q, y, cov, w) -> np.ndarray:
     """The residual model's weighted residuals (N, m) at x, as a numpy array. The robot measured by a device
     runs its own compiled parts (`residuals`); another model is compiled whole."""
     x, q, y, cov, w = (np.asarray(v, float) for v in (x, q, y, cov, per_sample(w, len(q))))
+    n = len(q)
+    size, row = buckets.sample_bucket(n), buckets.row_in_use(w)  # one program per bucket of sample counts
+    y, cov, w_bucket = buckets.repeat_row(y, size, row), buckets.repeat_row(cov, size, row), buckets.zero_rows(w, size)
     if isinstance(model, RobotDevice):  # the readings shared with the registration and predictions (`predicted`)
-        return np.asarray(misfit(model.device, predicted(model.robot, model.device, x, q), y, w))
-    return np.asarray(_model_rows(model, x, q, y, cov, w))
+        read = buckets.repeat_row(predicted(model.robot, model.device, x, q), size, row)
+        return np.asarray(misfit(model.device, read, y, w_bucket))[:n]
+    return np.asarray(_model_rows(model, x, buckets.repeat_row(q, size, row), y, cov, w_bucket))[:n]
 
 
 def no_covariates(n: int) -> np.ndarray:
@@ -1250,13 +1278,20 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
                        registered, compile_s, run_s, history, J0, frames_fitted, polish_record, r0=r0)
 
 
+def closes(robot: Robot, a, q) -> np.ndarray:
+    """Per-sample flags (numpy): the loops of the closed mechanism close at the robot parameters a (`jaxcal.closure.closed`),
+    in the program of the sample count's bucket (`buckets`)."""
+    from jaxcal.closure import closed
+
+    q = np.asarray(q, float)
+    return np.asarray(closed(robot, jnp.asarray(a), buckets.repeat_row(q, buckets.sample_bucket(len(q)), 0)))[:len(q)]
+
+
 def drop_unclosed(robot: Robot, a0, q) -> np.ndarray:
     """Mask of the samples whose loops close at a0 (all True for open chains); warns naming the others."""
     if robot.closure is None:
         return np.ones(len(q), bool)
-    from jaxcal.closure import closed
-
-    ok = np.asarray(closed(robot, jnp.asarray(a0), jnp.asarray(q)))
+    ok = closes(robot, a0, q)
     if not ok.any():
         raise ValueError(f"no sample of {robot.name!r} closes at the starting parameters (samples 0..{len(ok) - 1})")
     if not ok.all():
@@ -1266,7 +1301,7 @@ def drop_unclosed(robot: Robot, a0, q) -> np.ndarray:
     return ok
 
 
-__all__ = ["Calibration", "Problem", "RobotDevice", "SOLVERS", "Settings", "Solution", "calibrate", "choose_estimated",
+__all__ = ["Calibration", "Problem", "RobotDevice", "SOLVERS", "Settings", "Solution", "calibrate", "choose_estimated", "closes",
            "compiled_model_solver", "compiled_solver", "drop_unclosed", "evaluator", "f_ratio", "frames_estimated",
            "jacobian", "linear_f_ratio", "misfit",
            "make_problem", "make_solver", "model_residuals", "model_stacked", "no_covariates", "polish", "predicted", "readings",

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import dataclasses
 
-import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.fit import core
@@ -182,9 +181,7 @@ def assess(cal: core.Calibration, *, unclosed_start=(), sample_index=None, check
                         "barely separable; their values are unreliable")
     unclosed = tuple(int(i) for i in unclosed_start)
     if robot.closure is not None:
-        from jaxcal.closure import closed
-
-        ok = np.asarray(closed(robot, jnp.asarray(cal.x[:robot.n_params]), jnp.asarray(p.q)))
+        ok = core.closes(robot, cal.x[:robot.n_params], p.q)
         unclosed += tuple(int(idx[i]) for i in np.flatnonzero(~ok & used))
     if unclosed:
         warnings.append(f"{len(unclosed)} sample(s) do not close (left out or not closable at the solution): "

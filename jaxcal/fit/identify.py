@@ -21,7 +21,7 @@ import numpy as np
 
 from jaxcal import compiled
 from jaxcal.fit import bias as bias_rules
-from jaxcal.fit import core, lm
+from jaxcal.fit import buckets, core, lm
 from jaxcal.fit.bias import (
     ILL_CONDITIONED_BIAS,
     NOISE_DOMINATED,
@@ -264,9 +264,10 @@ def _rms_mm(problem: core.Problem, a_full) -> tuple[float | None, float | None]:
     """(position RMS mm, orientation RMS mrad) of the unweighted per-sample errors over the used samples."""
     unit = residual_weights(problem.device, 1.0, 1.0)
     used = problem.used
-    r = core.weighted_residuals(problem.robot, problem.device, a_full, problem.q, problem.y, unit)[used]  # one shape
-    pe, oe = _split_errors(problem.device, r)
-    rms = lambda e: None if e is None else float(np.sqrt(np.mean(np.asarray(e) ** 2)) * 1e3)  # noqa: E731
+    r = core.weighted_residuals(problem.robot, problem.device, a_full, problem.q, problem.y, unit)[used]
+    n = len(r)  # the program of the sample count's bucket (`buckets`): rows of 0 past the n samples
+    pe, oe = _split_errors(problem.device, buckets.zero_rows(r, buckets.sample_bucket(n)))
+    rms = lambda e: None if e is None else float(np.sqrt(np.mean(np.asarray(e)[:n] ** 2)) * 1e3)  # noqa: E731
     return rms(pe), rms(oe)
 
 

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import warnings
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.closure import forward_with_status
+from jaxcal.fit import buckets
+from jaxcal.fit.core import read_poses
 from jaxcal.fit.data import Dataset
 from jaxcal.forward import forward
 from jaxcal.measure import as_device
@@ -76,11 +77,13 @@ def simulate(robot, a_true, q, device="position", noise=None, device_params=None
     rng = np.random.default_rng(seed)
     q = np.asarray(q, float)
     q_actual = q + s_q * rng.standard_normal(q.shape)
+    n = len(q)
+    q_bucket = buckets.repeat_row(q_actual, buckets.sample_bucket(n), 0)  # one program per bucket of sample counts
     if robot.closure is not None:
-        tips, status = forward_with_status(robot, a_true, q_actual)
-        warn_unclosed(robot, status)
+        tips, status = forward_with_status(robot, a_true, q_bucket)
+        warn_unclosed(robot, np.asarray(status)[:n])
     else:
-        tips = forward(robot, jnp.asarray(a_true, dtype=jnp.float64), q_actual)
-    y = jax.vmap(dev.read, (0, None))(tips, d)
+        tips = forward(robot, jnp.asarray(a_true, dtype=jnp.float64), q_bucket)
+    y = np.asarray(read_poses(dev, tips, d))[:n]
     y = np.asarray(dev.add_noise(y, rng.standard_normal, s_p, s_r))
     return Dataset(q=q, y=y, device=dev, joint_names=robot.joint_names)
