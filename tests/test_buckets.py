@@ -62,9 +62,10 @@ def _solver_compiles(monkeypatch) -> list:
 
 @pytest.mark.parametrize("name", ["stanford", "fourbar2d"])
 def test_a_bucket_program_fits_the_samples_alone_and_serves_nearby_counts(name, monkeypatch):
-    """identify on 45 samples (program for 48) equals identify in a program for exactly 45 (same steps, estimate to
-    1e-10, RMS to 1e-9 relative); the device frame is 2 m away and turned. Then 46 and 47 samples compile no solver:
-    they run in the program for 48."""
+    """identify on 45 samples (program for 48 at 8 buckets per octave) equals identify in a program for exactly 45
+    (same steps, estimate to 1e-10, RMS to 1e-9 relative); the device frame is 2 m away and turned. Then 46 and 47
+    samples compile no solver: they run in the program for 48."""
+    monkeypatch.setattr(buckets, "SAMPLE_BUCKETS_PER_OCTAVE", 8)
     rb = jc.robots.get(name)
     dev = jc.make_device("position")
     d = np.zeros(dev.n_params)
