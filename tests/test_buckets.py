@@ -1,6 +1,8 @@
 """Sample-count buckets (`jaxcal.fit.buckets`): one compiled program serves datasets of nearby sizes, and its fit is
 the fit of the caller's samples alone."""
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -26,7 +28,8 @@ def test_a_bucket_rounds_up_by_less_than_one_part_in_per_octave(per_octave):
 def test_padding_repeats_a_sample_in_use_with_weight_zero(monkeypatch):
     """The padded arguments: q, y and cov repeat the first sample of non-zero weight (here the second: the first has
     weight 0 in every batch entry), w and a given start's data rows are 0 past the caller's samples, a placeholder
-    start is made at the padded shape, and batched entries are padded along their sample axis (1)."""
+    start is made at the padded shape, batched entries are padded along their sample axis (1), and a JAX array is
+    padded as one (with the same values)."""
     monkeypatch.setattr(buckets, "SAMPLE_BUCKETS_PER_OCTAVE", 2)
     n, m, P = 19, 3, 4  # bucket 24
     rng = np.random.default_rng(0)
@@ -51,6 +54,8 @@ def test_padding_repeats_a_sample_in_use_with_weight_zero(monkeypatch):
     out = padded_solver_args(dict(q=q, y=np.stack([y, y]), cov=cov, w=wb), batched=("y", "w"))
     assert out["y"].shape == (2, 24, m) and out["w"].shape == (2, 24, m) and out["q"].shape == (24, 2)
     np.testing.assert_array_equal(out["y"][:, n:], np.repeat(y[None, 1:2], 5, axis=1).repeat(2, axis=0))
+    on_device = padded_solver_args(dict(q=q, y=jnp.stack([y, y]), cov=cov, w=wb), batched=("y", "w"))  # stays a JAX array
+    assert isinstance(on_device["y"], jax.Array) and np.array_equal(np.asarray(on_device["y"]), out["y"])
 
 
 def _solver_compiles(monkeypatch) -> list:

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import os
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 SAMPLE_BUCKETS_PER_OCTAVE = int(os.environ.get("JAXCAL_SAMPLE_BUCKETS", "16"))
@@ -33,22 +35,30 @@ def sample_bucket(n: int, per_octave: int | None = None) -> int:
     return -(-n // step) * step
 
 
-def repeat_row(a, size: int, row: int, axis: int = 0) -> np.ndarray:
+def _array_module(a):
+    """jax.numpy for a JAX array (padded where it lives: Monte Carlo readings drawn on an accelerator stay there),
+    else numpy."""
+    return jnp if isinstance(a, jax.Array) else np
+
+
+def repeat_row(a, size: int, row: int, axis: int = 0):
     """a with its `axis` extended to `size` by copies of index `row` along it."""
-    a = np.asarray(a)
+    xp = _array_module(a)
+    a = xp.asarray(a)
     extra = size - a.shape[axis]
     if extra <= 0:
         return a
-    copies = np.repeat(np.take(a, [row], axis=axis), extra, axis=axis)
-    return np.concatenate([a, copies], axis=axis)
+    copies = xp.repeat(xp.take(a, xp.asarray([row]), axis=axis), extra, axis=axis)
+    return xp.concatenate([a, copies], axis=axis)
 
 
-def zero_rows(a, size: int, axis: int = 0) -> np.ndarray:
+def zero_rows(a, size: int, axis: int = 0):
     """a with its `axis` extended to `size` by zeros."""
-    a = np.asarray(a)
+    xp = _array_module(a)
+    a = xp.asarray(a)
     shape = list(a.shape)
     shape[axis] = size - a.shape[axis]
-    return a if shape[axis] <= 0 else np.concatenate([a, np.zeros(shape, a.dtype)], axis=axis)  # np.pad: 3x slower
+    return a if shape[axis] <= 0 else xp.concatenate([a, xp.zeros(shape, a.dtype)], axis=axis)  # np.pad: 3x slower
 
 
 def row_in_use(w, axis: int = 0) -> int:
