@@ -4,12 +4,12 @@ A program compiled for N samples serves every dataset of N samples only, so a se
 one of 200 compiled the solver again (~3 s for the Stanford arm, ~14 s for the Delta). Here a dataset of n samples
 runs in the program for `sample_bucket(n)` samples: n rounded up to one of `SAMPLE_BUCKETS_PER_OCTAVE` sizes per
 octave (16: under 6.25 % padding rows; 197 to 200 samples run in the program for 200, 121 to 124 in that for 124,
-61 in that for 62). The padding rows repeat a sample that
-is in use (its joint values, readings and covariates), with weight 0: their residual rows are exactly 0, so the
-stacked residual's norm, its Jacobian's non-zero rows, every LM step and the optimum are those of the n samples
-(`jaxcal.fit.core`'s module docstring: a weight of 0 removes a sample exactly). A repeated sample closes, or fails
-to, exactly as the sample it repeats, so closed mechanisms need nothing more. Callers slice the outputs back to their
-n samples. JAXCAL_SAMPLE_BUCKETS sets the number of sizes per octave (0: every sample count its own program).
+61 in that for 62). The padding rows repeat a sample that is in use (its joint values, readings and covariates),
+with weight 0: their residual rows are exactly 0, so the stacked residual's norm, its Jacobian's non-zero rows, every
+LM step and the optimum are those of the n samples (`jaxcal.fit.core`'s module docstring: a weight of 0 removes a
+sample exactly). A repeated sample closes, or fails to, exactly as the sample it repeats, so closed mechanisms need
+nothing more. Callers slice the outputs back to their n samples. JAXCAL_SAMPLE_BUCKETS sets the number of sizes per
+octave (a power of 2; 0: every sample count its own program).
 """
 
 from __future__ import annotations
