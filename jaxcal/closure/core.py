@@ -36,6 +36,7 @@ import numpy as np
 import optimistix as optx
 
 from jaxcal import exported
+from jaxcal.autodiff import value_and_jacfwd
 from jaxcal.closure.track import CLOSED, OTHER_MODE, UNCLOSED, Tracked, corrector, damped_newton, track
 from jaxcal.kin.model import Robot, frames_single, joint_variables, map_leading_axes
 from jaxcal.kin.pose import Pose
@@ -216,8 +217,7 @@ def newton_lm(fn, start, max_steps: int, tol: float):
 
     def body(state):
         th, norm, mu, k = state
-        v = fn(th)
-        V = jax.jacfwd(fn)(th)
+        v, V = value_and_jacfwd(fn, th)
         step = -solve_small(V.T @ V + mu * eye, V.T @ v)
         trial = th + step
         trial_norm = jnp.linalg.norm(fn(trial))

@@ -21,6 +21,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxcal.autodiff import value_and_jacfwd
 from jaxcal.forward import forward
 
 
@@ -33,22 +34,13 @@ class Compensation(NamedTuple):
     ok: jnp.ndarray
 
 
-def _jacobian_and_value(fn):
-    """q -> (dfn/dq, fn(q)) from one trace of fn (`jax.jacfwd` with the value as its aux output)."""
-
-    def value_twice(q):
-        value = fn(q)
-        return value, value
-
-    return jax.jacfwd(value_twice, has_aux=True)
-
-
 @functools.partial(jax.jit, static_argnames=("robot", "steps"))
 def _newton(robot, a, targets, q0, steps):
     """`steps` Newton steps per target, then the error at the last iterate. The forward kinematics (a closure solve)
     is traced once: the loop runs steps + 1 turns, each evaluating p and dp/dq together at its iterate, and the last
-    one only records |p - target| (with the separate p(q) of each step and the error's after the loop, the Delta's
-    program took 21.3 s to compile at LLVM level 0 instead of 10.4 s, for the same settings to the bit)."""
+    one only records |p - target| (`value_and_jacfwd`; with the separate p(q) of each step and the error's after the
+    loop, the Delta's program took 21.3 s to compile at LLVM level 0 instead of 10.0 s, for the same settings to the
+    bit)."""
 
     def position(q):
         return forward(robot, a, q).p
@@ -56,7 +48,7 @@ def _newton(robot, a, targets, q0, steps):
     def one(target, q):
         def step(i, carry):
             qk, _ = carry
-            J, p = _jacobian_and_value(position)(qk)
+            p, J = value_and_jacfwd(position, qk)
             moved = qk - jnp.linalg.solve(J, p - target)
             return jnp.where(i < steps, moved, qk), jnp.linalg.norm(p - target)
 
@@ -89,7 +81,7 @@ def least_squares(residual, q0, steps: int = 8, damping: float = 1e-12):
     same cost; from the nominal inverse solution the undamped steps converge in a few iterations."""
 
     def step(_, q):
-        J, r = _jacobian_and_value(residual)(q)
+        r, J = value_and_jacfwd(residual, q)
         return q - jnp.linalg.solve(J.T @ J + damping * jnp.eye(q.shape[0]), J.T @ r)
 
     return jax.lax.fori_loop(0, steps, step, jnp.asarray(q0, dtype=jnp.float64))
@@ -105,7 +97,7 @@ def line_search(residual, q0):
     One Jacobian and two extra residual evaluations per target, against ~10 of each for the exact
     solution. Returns q0 + t* d for one target; vmap it over targets."""
     q0 = jnp.asarray(q0, dtype=jnp.float64)
-    J, r0 = _jacobian_and_value(residual)(q0)
+    r0, J = value_and_jacfwd(residual, q0)
     d = -J.T @ r0
     f0 = 0.5 * jnp.dot(r0, r0)
     s = f0 / jnp.maximum(jnp.dot(d, d), 1e-300)

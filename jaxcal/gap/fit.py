@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal.autodiff import value_and_jacfwd
 from jaxcal.gap import closed
 from jaxcal.gap.effects import carried, gravity_loads, joint_axes, payload_loads, read_batch, residuals, tip_bodies
 from jaxcal.gap.model import GapModel
@@ -115,7 +116,7 @@ def jacobians(xs, q, y, cov, w, *, model):
 
     def one(x):
         f = lambda v: residuals(model, v, q, y, cov, w).reshape(-1)  # noqa: E731
-        return f(x), jax.jacfwd(f)(x)
+        return value_and_jacfwd(f, x)
 
     return jax.vmap(one)(xs)
 
