@@ -33,7 +33,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.autodiff import value_and_jacfwd
 from jaxcal.forward import forward
 from jaxcal.kin.model import Robot
 from jaxcal.kin.rotations import log_so3
@@ -124,7 +123,8 @@ def solve_ik(robot: Robot, kind: str, a, target, q0, steps: int = 60):
 
     def body(state, _):
         q, lam = state
-        r, J = value_and_jacfwd(fn, q)
+        r = fn(q)
+        J = jax.jacfwd(fn)(q)
         dq = -J.T @ jnp.linalg.solve(J @ J.T + lam * jnp.eye(r.shape[0]), r)
         q_new = q + dq
         better = jnp.linalg.norm(fn(q_new)) < jnp.linalg.norm(r)
