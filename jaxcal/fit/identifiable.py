@@ -2,7 +2,8 @@
 
 seed 001 Appendix III: the observation matrix W of a method (autodiff Jacobian of its residual
 at generated points) is QR-decomposed with its columns in priority order; the base set is the
-first independent columns (|R_ii| > tau = c eps max|R_jj|, eq 34), zero columns have no effect
+first independent columns (|R_ii| > tau max|R_jj|; eq 34 sets tau = c eps, with c the number of columns, and
+`PIVOT_TOL` here is wider: see there), zero columns have no effect
 and the others are regrouped, W_r = W_b beta with beta = R1^-1 R2 (eq 37). The unknown plane
 coefficients of plane1_unknown / plane2_unknown are identified with the robot (ordered first,
 as in eq 15) but not counted.
@@ -27,6 +28,13 @@ from jaxcal.fit.methods import PLANE_METHODS, check_method, extra_names, generat
 from jaxcal.kin.model import Robot
 
 EXTRA_PRIORITY = 10.0  # plane coefficients come first (eq 15 column order)
+# The numerical zero of the QR pivots, relative to the largest. Seed 001's eq 34 takes c eps with c the number of columns
+# (9.6e-15 for Table 2's W); the pivots of columns dependent by structure land at round-off, which that rule can miss:
+# the largest such pivot was 9.0e-15 (plane2_known j6.r, Table 2's priorities, 40 points, seed 0), and evaluating the
+# same points from one trace instead of two moved it across (docs/identifiability.md). The pivots of the columns kept
+# are 9e-3 or more (Stanford, nine methods; MRR-1, two; seeds 0 and 1), so any threshold in between gives the seed's
+# table; 1e-10 (the core's base-set rule, `jaxcal.fit.core.BASE_TOL`) sits well inside that gap. c= gives eq 34's.
+PIVOT_TOL = 1e-10
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,7 +102,7 @@ def identifiable_from_W(robot: Robot, method: str, W, priority=None, include_gai
     W = np.asarray(W)[:, : nr + len(extras)]
     p = np.concatenate([_priority(robot, priority, include_gains), np.full(len(extras), EXTRA_PRIORITY)])
     names = tuple(robot.names) + extras
-    bs = base_set(W, p, c)
+    bs = base_set(W, p, PIVOT_TOL / np.finfo(float).eps if c is None else c)
     robot_base = [i for i in bs.independent if i < nr]
     wb = W[:, bs.independent]
     return Identifiable(
@@ -114,7 +122,8 @@ def identifiable(robot: Robot, method: str, n_configs: int = 60, seed: int = 0, 
     at parameters a (default nominal) satisfying the method's constraint; priority: one number
     per robot parameter (higher first, 0 = not identified; default robot.priority, GECARO §4);
     include_gains=False gives the gains priority 0. For one-equation methods n_configs is raised so
-    that W has at least twice as many rows as columns."""
+    that W has at least twice as many rows as columns. c: the pivot threshold is c eps max|R_jj| (eq 34 with c =
+    the number of columns); default PIVOT_TOL max|R_jj|."""
     check_method(method)
     t0 = time.perf_counter()
     a = robot.nominal if a is None else jnp.asarray(a, dtype=jnp.float64)
