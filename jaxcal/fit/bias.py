@@ -71,7 +71,7 @@ def weakest_standard_error(cal: core.Calibration) -> float:
     if not est.size:
         return 0.0
     p = cal.problem
-    r = np.asarray(core.weighted_residuals(p.robot, p.device, cal.x, p.q, p.y, p.w))[p.used]
+    r = cal.residuals[p.used]
     sigma2 = float(np.sum(r**2)) / max(r.size - est.size, 1)
     return _weakest(cal.R[:, est] * core.x_scale(p.units)[est], sigma2)  # R^T R = J^T J
 

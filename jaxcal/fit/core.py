@@ -1110,6 +1110,13 @@ class Calibration:
     polish: dict  # the final all-parameter stage: tried, accepted, F ratio, costs (`polish`)
     stopped_early: bool = False  # the unbiased fit was stopped by `early_stop` (x, J: where it stopped; no polish)
     r0: np.ndarray | None = None  # weighted residuals (N, m) at x_frames, with J0 the first stage's start
+    r: np.ndarray | None = None  # weighted residuals (N, m) at x that the last solve returned with J (None: not returned)
+
+    @functools.cached_property
+    def residuals(self) -> np.ndarray:
+        """The weighted residuals (N, m) at x: those the last solve returned with J, else evaluated once (`Problem.residuals`).
+        The health checks, the bias rule and the covariance all read them."""
+        return self.problem.residuals(self.x) if self.r is None else self.r
 
     @functools.cached_property
     def R(self) -> np.ndarray:
@@ -1252,7 +1259,7 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
                 return Calibration(problem, sol.x, x_frames, est, undetermined, no_effect, regrouped, sol.J, False,
                                    frames_ok, sol.steps, registered, compile_s + sol.compile_s,
                                    time.perf_counter() - t0 - compile_s - sol.compile_s, sol.history, J0, frames_fitted,
-                                   {"tried": False}, stopped_early=True, r0=r0)
+                                   {"tried": False}, stopped_early=True, r0=r0, r=sol.r)
             if not sol.converged:
                 compile_s += sol.compile_s
                 sol = solve(problem, x, est, settings, mu, ref=x_frames, start=read)
@@ -1271,11 +1278,11 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
             x, compile_s, converged = polished.x, compile_s + polished.compile_s, True
             iterations += polished.steps
             histories.append(polished.history)
-            J = problem.jacobian(x) if polished.J is None else polished.J
+            r, J = problem.residual_and_jacobian(x) if polished.J is None else polished.read
     run_s = time.perf_counter() - t0 - compile_s
     history = np.concatenate(histories) if histories and all(h.size for h in histories) else np.zeros(0)
     return Calibration(problem, x, x_frames, est, undetermined, no_effect, regrouped, J, converged, frames_ok, iterations,
-                       registered, compile_s, run_s, history, J0, frames_fitted, polish_record, r0=r0)
+                       registered, compile_s, run_s, history, J0, frames_fitted, polish_record, r0=r0, r=r)
 
 
 def closes(robot: Robot, a, q) -> np.ndarray:

@@ -92,8 +92,7 @@ def outside_joint_limits(robot, q) -> tuple[tuple[int, str], ...]:
 
 def residual_ratio(cal: core.Calibration) -> float:
     """sqrt(r^T r / (m - p)) of the weighted residual at the solution, over the used rows."""
-    p = cal.problem
-    r = core.weighted_residuals(p.robot, p.device, cal.x, p.q, p.y, p.w)[p.used]
+    r = cal.residuals[cal.problem.used]
     dof = max(r.size - len(cal.estimated), 1)
     return float(np.sqrt(np.sum(r**2) / dof))
 
@@ -165,8 +164,7 @@ def assess(cal: core.Calibration, *, unclosed_start=(), sample_index=None, check
             suspects = suspect_joint_columns(p, cal.x, settings)
             warnings += [f"joint columns: {s}" for s in suspects[:3]]
     used = p.used
-    r = core.weighted_residuals(robot, p.device, cal.x, p.q, p.y, p.w)
-    norms = np.linalg.norm(r, axis=1)
+    norms = np.linalg.norm(cal.residuals, axis=1)
     flagged = idx[np.flatnonzero(used)[robust_outliers(norms[used])]]
     if flagged.size:
         warnings.append(f"{flagged.size} outlier sample(s) (error more than {OUTLIER_Z:g} robust standard deviations above "

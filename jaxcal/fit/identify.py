@@ -455,7 +455,7 @@ def identify(
     after_p, after_o = _rms_mm(problem, cal.x)
     est_idx = cal.estimated
     Je = cal.R[:, est_idx]  # J's triangular factor: J's covariance and singular directions (`core.triangular`)
-    r_final = core.weighted_residuals(robot, device, cal.x, problem.q, problem.y, problem.w).reshape(-1)
+    r_final = cal.residuals.reshape(-1)
     readings = int(np.sum(problem.w != 0))
     mu_end = core.bias_schedule(bias_info.get("bias_schedule", None if isinstance(bias, str) else bias))[-1]
     covariance, sigma_hat = _covariance(Je, mu_end, problem.x_scale[est_idx], r_final, readings)
