@@ -100,8 +100,14 @@ def signature(tree) -> tuple:
     """What selects a compiled program among arguments: the tree's structure and each leaf's shape, dtype and
     weak typing (numpy and JAX arrays of one shape and dtype alike)."""
     leaves, treedef = jax.tree_util.tree_flatten(tree)
-    return (treedef, *((np.shape(v), str(getattr(v, "dtype", np.result_type(v))), bool(getattr(v, "weak_type", False)))
-                       for v in leaves))
+    return (treedef, *((np.shape(v), _dtype_code(v), bool(getattr(v, "weak_type", False))) for v in leaves))
+
+
+def _dtype_code(v) -> str:
+    """The leaf's dtype as numpy's code ("<f8"): str(dtype) runs numpy's Python __str__, ~1 us, and one `identify`
+    takes ~750 signatures of leaves (0.8 of its 26 ms, Stanford arm, 200 poses)."""
+    dtype = getattr(v, "dtype", None)
+    return (dtype if dtype is not None else np.result_type(v)).str
 
 
 def placements(tree) -> tuple[str, ...]:

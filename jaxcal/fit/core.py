@@ -1111,6 +1111,7 @@ class Calibration:
     stopped_early: bool = False  # the unbiased fit was stopped by `early_stop` (x, J: where it stopped; no polish)
     r0: np.ndarray | None = None  # weighted residuals (N, m) at x_frames, with J0 the first stage's start
     r: np.ndarray | None = None  # weighted residuals (N, m) at x that the last solve returned with J (None: not returned)
+    factor: np.ndarray | None = None  # J's triangular factor when `calibrate` has it (`R`)
 
     @functools.cached_property
     def residuals(self) -> np.ndarray:
@@ -1121,8 +1122,9 @@ class Calibration:
     @functools.cached_property
     def R(self) -> np.ndarray:
         """J's triangular factor (`triangular`): what the covariance, the weak directions, the conditioning and the
-        standard errors of any columns of J need, at the cost of one QR instead of one SVD or product of J each."""
-        return triangular(self.J)
+        standard errors of any columns of J need, at the cost of one QR instead of one SVD or product of J each. The
+        final stage's F test factors [J r] (`polish`), whose leading block is J's: then that one."""
+        return triangular(self.J) if self.factor is None else self.factor
 
 
 def choose_estimated(problem: Problem, J, base: bool, base_tol: float | None):
@@ -1161,21 +1163,22 @@ def f_ratio(cost_before: float, cost_after: float, k: int, dof: int) -> float:
     return float((cost_before - cost_after) / k / max(cost_after / dof, 1e-300))
 
 
-def linear_f_ratio(r, J, estimated, added, dof: int) -> float:
+def linear_f_ratio(r, J, estimated, added, dof: int, factor=None) -> float:
     """`f_ratio` that one Gauss-Newton step predicts for adding the columns `added` to `estimated` at a point where
     the `estimated` ones are already fitted: C0 = |r|^2, C1 = min over all of them of |r + J delta|^2 (columns
     scaled to unit norm, so that the least-squares cut-off treats metres, radians and gains alike), solved on the
-    triangular factor of [J_c r] (`triangular`: the same minimum, on k + 1 rows instead of J's)."""
-    Jc = J[:, np.concatenate([estimated, added])]
-    Jc = Jc / np.maximum(np.linalg.norm(Jc, axis=0), 1e-300)
-    T = triangular(np.column_stack([Jc, r]))
-    A, b = T[:, :-1], T[:, -1]
+    triangular factor T of [J r] (`triangular`; [J r] = Q T with Q's columns orthonormal, so the columns' problem
+    and their norms are T's, on P + 1 rows instead of J's). factor: that T, when the caller has it."""
+    T = triangular(np.column_stack([J, r])) if factor is None else factor
+    A, b = T[:, np.concatenate([estimated, added])], T[:, -1]
+    A = A / np.maximum(np.linalg.norm(A, axis=0), 1e-300)
     delta = np.linalg.lstsq(A, -b, rcond=None)[0]
     c1 = float(np.sum((b + A @ delta) ** 2))
-    return f_ratio(float(r @ r), c1, len(added), dof)
+    return f_ratio(float(b @ b), c1, len(added), dof)
 
 
-def polish(problem: Problem, x, J, estimated, undetermined, settings: Settings, r=None) -> tuple[Solution | None, dict]:
+def polish(problem: Problem, x, J, estimated, undetermined, settings: Settings, r=None,
+           factor=None) -> tuple[Solution | None, dict]:
     """The final stage: every free parameter with an effect at x, biased (POLISH_BIAS) toward the base-set estimate x.
 
     The base set is chosen at the start, where the held parameters' columns depend on the others; at the
@@ -1185,7 +1188,8 @@ def polish(problem: Problem, x, J, estimated, undetermined, settings: Settings, 
     stage is tried only when one Gauss-Newton step predicts an F ratio (`f_ratio`, k = the parameters added,
     dof = readings - all parameters) above POLISH_F, and kept only when the solve's own F ratio is above it
     too: fitting noise alone gives F ~ 1. r: the weighted residuals (N, m) at x that come with J (the solve's start;
-    evaluated here when not given). Returns (solution or None, record)."""
+    evaluated here when not given); factor: the triangular factor of [J r] when the caller has it (`linear_f_ratio`).
+    Returns (solution or None, record)."""
     col = np.linalg.norm(J * problem.x_scale, axis=0)  # typical-size units
     effect = np.flatnonzero(col > NO_EFFECT_AT_SOLUTION * col.max())
     added = np.intersect1d(undetermined, effect)  # what has an effect at x (a column zero at the start may not be)
@@ -1193,11 +1197,11 @@ def polish(problem: Problem, x, J, estimated, undetermined, settings: Settings, 
     if not added.size or dof <= 0:
         return None, {"tried": False}
     r = problem.residuals(x) if r is None else r
-    predicted = linear_f_ratio(r.reshape(-1), J, estimated, added, dof)
+    predicted = linear_f_ratio(r.reshape(-1), J, estimated, added, dof, factor)
     if not predicted > POLISH_F:
         return None, {"tried": False, "predicted_f_ratio": predicted}
     sol = solve(problem, x, np.sort(np.concatenate([estimated, added])), settings, mu=POLISH_BIAS, ref=x, start=(r, J))
-    c0, c1 = problem.cost(x), problem.cost(sol.x)
+    c0, c1 = float(np.sum(np.square(r))), (problem.cost(sol.x) if sol.r is None else float(np.sum(np.square(sol.r))))
     f = f_ratio(c0, c1, len(added), dof) if np.isfinite(c1) else -np.inf
     record = {"tried": True, "accepted": bool(f > POLISH_F and sol.converged), "predicted_f_ratio": predicted,
               "f_ratio": f, "cost_before": c0, "cost_after": c1, "added": len(added), "added_index": added.tolist(),
@@ -1270,19 +1274,21 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
         iterations += sol.steps
         converged = converged and sol.converged
     r, J = problem.residual_and_jacobian(x) if read is None else read  # the last stage's solver returned them at x
-    polish_record = {"tried": False}
+    polish_record, R = {"tried": False}, None
     if base and final_polish:
         say("final all-parameter stage (tried when it would lower the cost beyond noise)")
-        polished, polish_record = polish(problem, x, J, est, undetermined, settings, r)
+        factor = triangular(np.column_stack([J, np.reshape(r, -1)]))  # the polish's F test and, kept, J's own factor
+        R = factor[:min(J.shape), :J.shape[1]]
+        polished, polish_record = polish(problem, x, J, est, undetermined, settings, r, factor)
         if polished is not None:  # a converged optimum from where the stages stopped, converged or not
-            x, compile_s, converged = polished.x, compile_s + polished.compile_s, True
+            x, compile_s, converged, R = polished.x, compile_s + polished.compile_s, True, None
             iterations += polished.steps
             histories.append(polished.history)
             r, J = problem.residual_and_jacobian(x) if polished.J is None else polished.read
     run_s = time.perf_counter() - t0 - compile_s
     history = np.concatenate(histories) if histories and all(h.size for h in histories) else np.zeros(0)
     return Calibration(problem, x, x_frames, est, undetermined, no_effect, regrouped, J, converged, frames_ok, iterations,
-                       registered, compile_s, run_s, history, J0, frames_fitted, polish_record, r0=r0, r=r)
+                       registered, compile_s, run_s, history, J0, frames_fitted, polish_record, r0=r0, r=r, factor=R)
 
 
 def closes(robot: Robot, a, q) -> np.ndarray:
