@@ -260,11 +260,16 @@ def _split_errors(device: Device, r):
     return device.split_errors(r)
 
 
-def _rms_mm(problem: core.Problem, a_full) -> tuple[float | None, float | None]:
-    """(position RMS mm, orientation RMS mrad) of the unweighted per-sample errors over the used samples."""
+def _rms_mm(problem: core.Problem, a_full, weighted=None) -> tuple[float | None, float | None]:
+    """(position RMS mm, orientation RMS mrad) of the unweighted per-sample errors over the used samples. weighted:
+    the problem's weighted residuals (N, m) at a_full when the caller has them (divided by the weights, which every
+    used sample has non-zero in each component; else evaluated)."""
     unit = residual_weights(problem.device, 1.0, 1.0)
     used = problem.used
-    r = core.weighted_residuals(problem.robot, problem.device, a_full, problem.q, problem.y, unit)[used]
+    if weighted is not None and np.all(problem.w[used] != 0):
+        r = np.asarray(weighted)[used] / problem.w[used] * unit
+    else:
+        r = core.weighted_residuals(problem.robot, problem.device, a_full, problem.q, problem.y, unit)[used]
     n = len(r)  # the program of the sample count's bucket (`buckets`): rows of 0 past the n samples
     pe, oe = _split_errors(problem.device, buckets.zero_rows(r, buckets.sample_bucket(n)))
     rms = lambda e: None if e is None else float(np.sqrt(np.mean(np.asarray(e)[:n] ** 2)) * 1e3)  # noqa: E731
@@ -451,8 +456,8 @@ def identify(
             hist = _history(problem, cal.x_frames, problem.args(cal.estimated, 0.0, cal.x_frames), settings)
 
     nominal_p, nominal_o = _rms_mm(problem, problem.a_ref)
-    before_p, before_o = _rms_mm(problem, cal.x_frames)
-    after_p, after_o = _rms_mm(problem, cal.x)
+    before_p, before_o = _rms_mm(problem, cal.x_frames, cal.r0)
+    after_p, after_o = _rms_mm(problem, cal.x, cal.residuals)
     est_idx = cal.estimated
     Je = cal.R[:, est_idx]  # J's triangular factor: J's covariance and singular directions (`core.triangular`)
     r_final = cal.residuals.reshape(-1)
