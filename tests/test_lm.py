@@ -167,6 +167,27 @@ def test_a_step_on_the_free_columns_alone_is_the_masked_step():
                                    atol=1e-14)
 
 
+def test_a_last_step_of_no_predicted_gain_within_the_tolerances_is_not_evaluated():
+    """Right after an accepted step, a step whose predicted decrease is at round-off and which is within the step
+    tolerances ends the run unevaluated: z is returned as it is, with the residual and Jacobian evaluated there, and
+    the run evaluates r and J twice (the start, the first step) where evaluating that last step made it three times.
+    r(z) = (z0 - 1, z1 - 2, 1): the first step (damping 1e-9) lands 1e-9 short of (1, 2), the second would move
+    1e-9 (tolerance 1e-8 + 1e-6 |z|) for a predicted decrease of ~1e-18 of the cost."""
+    calls = []
+    J = jnp.array([[1.0, 0.0], [0.0, 1.0], [0.0, 0.0]])
+
+    def jac(z, args):
+        jax.debug.callback(lambda: calls.append(1))
+        return jnp.stack([z[0] - 1.0, z[1] - 2.0, jnp.ones((), z.dtype)]), J
+
+    res = lm.least_squares(lambda z, args: jac(z, args)[0], jnp.zeros(2), None, max_steps=50, rtol=1e-6, atol=1e-8, jac=jac)
+    jax.block_until_ready(res)
+    assert bool(res.converged) and int(res.steps) == 2 and len(calls) == 2
+    np.testing.assert_allclose(np.asarray(res.z), [1.0, 2.0], rtol=0, atol=1e-8)
+    np.testing.assert_array_equal(np.asarray(res.r), [res.z[0] - 1.0, res.z[1] - 2.0, 1.0])
+    assert float(res.history[2]) == float(res.history[1])  # the last step left the cost as it was: not taken
+
+
 def test_a_step_of_negligible_predicted_gain_ends_the_run(monkeypatch):
     """A step whose predicted decrease is at round-off (here 1e-18 of the cost, which rounds to 0) ends the run
     though it is far above the tolerances, kept since the cost did not rise: z is optimal to working precision.
