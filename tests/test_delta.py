@@ -215,6 +215,10 @@ def test_broken_reduction_hands_over_to_the_generic_closure(rb):
     with pytest.warns(UserWarning, match="j16.a1"):
         served = rb.closure.serving(rb, a)
     assert type(served.closure) is jc.closure.Closure and served.closure.free == rb.closure.free
+    # one serving robot per Delta: compiled closures take the robot as a static argument (hashed by identity), and
+    # a new object per call compiled the generic closure again at every evaluation (~30 s each)
+    with pytest.warns(UserWarning, match="j16.a1"):
+        assert rb.closure.serving(rb, a + 1e-9) is served
     free = rb.free_mask.copy()
     free[rb.index("j19.d1")] = True
     assert dl.reduction_breaks(rb, rb.nominal, free) == ["j19.d1"]

@@ -680,9 +680,13 @@ def reduction_breaks(robot, a, free_mask=None) -> list[str]:
     return [robot.names[i] for i, v in structure_entries(robot) if abs(a[i] - v) > STRUCTURE_TOL or free[i]]
 
 
+@functools.lru_cache(maxsize=8)
 def general_robot(robot):
     """The Delta with the generic whole-tree closure (`jaxcal.closure.core`: continuation from the closed home
-    configuration `start`) in place of the fast path: same parameters, any geometry."""
+    configuration `start`) in place of the fast path: same parameters, any geometry. One object per robot: compiled
+    functions take the robot as a static argument, which hashes by identity, so a new object at every call traced
+    and compiled the generic closure again: ~30 s per `core.predicted` of a Delta off its structure entries, each
+    compile adding ~5,000 memory mappings until LLVM aborted the process ("Unable to allocate section memory")."""
     c = robot.closure
     return robot.replace(closure=Closure(pairs=c.pairs, free=c.free, start=c.start))
 
