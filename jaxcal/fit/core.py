@@ -472,7 +472,8 @@ def _solve_one(x0, args, limit, model, settings: Settings, width: int | None = N
         to_x = lambda z: args["a_ref"] + args["x_scale"] * z  # noqa: E731
     if isinstance(slv, LevenbergMarquardt):
         start = given_start(z0, args) if "start" in args and "S" not in args else None
-        res = slv(fn, z0, args, settings.max_steps, jac, limit, None if "S" in args else args["mask"], width, start)
+        data_rows = None if "S" in args else args["w"].size  # then the prior rows (2P) have one entry each
+        res = slv(fn, z0, args, settings.max_steps, jac, limit, None if "S" in args else args["mask"], width, start, data_rows)
         return to_x(res.z), res.converged, res.steps, res.cost, res.history, res.r, res.J
     sol = optx.least_squares(fn, slv, z0, args, max_steps=settings.max_steps, throw=False)
     empty = jnp.zeros(0, z0.dtype)

@@ -84,17 +84,28 @@ def residual_and_jacobian(fn: Callable, z, args):
     return r, J
 
 
-def damped_factor(J, r, lam):
+def damped_factor(J, r, lam, data_rows: int | None = None):
     """(U, delta): U upper triangular with U^T U = J^T J + lam I, and delta minimising |r + J delta|^2 + lam |delta|^2
     (the least-squares problem [J; sqrt(lam) I] delta = [-r; 0]).
 
     Two triangular factorisations, no orthogonal factor formed: R of [J r] gives R1 and c = Q1^T r (J = Q1 R1),
     then R of [[R1, c], [sqrt(lam) I, 0]] gives the damped system in triangular form (MINPACK's way of solving
-    the damped step from the QR of J; 0.29 ms instead of 0.46 ms for a 704 x 52 J, forming Q)."""
+    the damped step from the QR of J; 0.29 ms instead of 0.46 ms for a 704 x 52 J, forming Q).
+
+    data_rows (static): the rows from this one on have at most one non-zero entry each (the core's prior rows,
+    `jaxcal.fit.core.prior_rows`). All such rows of column j, with the damping, add (a_j delta_j + b_j)^2 to the
+    problem up to a constant, a_j^2 = lam + sum_k J_kj^2 and a_j b_j = sum_k J_kj r_k: they take the damping rows'
+    place as [diag(a), b], and the first factorisation runs on the data rows alone (the Delta, 384 data rows and
+    332 prior rows, 88 columns: 1.01-1.06 -> 0.83-0.85 ms)."""
     n = J.shape[1]
+    if data_rows is None:
+        J, r, a, b = J, r, jnp.full(n, jnp.sqrt(lam), J.dtype), jnp.zeros(n, J.dtype)
+    else:
+        Jp, rp, J, r = J[data_rows:], r[data_rows:], J[:data_rows], r[:data_rows]
+        a = jnp.sqrt(lam + jnp.sum(Jp**2, axis=0))
+        b = (Jp.T @ rp) / a
     R = jnp.linalg.qr(jnp.concatenate([J, r[:, None]], axis=1), mode="r")[:n]
-    damped = jnp.concatenate([jnp.sqrt(lam) * jnp.eye(n, dtype=J.dtype), jnp.zeros((n, 1), J.dtype)], axis=1)
-    R2 = jnp.linalg.qr(jnp.concatenate([R, damped]), mode="r")
+    R2 = jnp.linalg.qr(jnp.concatenate([R, jnp.concatenate([jnp.diag(a), b[:, None]], axis=1)]), mode="r")
     return R2[:n, :n], jax.scipy.linalg.solve_triangular(R2[:n, :n], -R2[:n, n], lower=False)
 
 
@@ -161,13 +172,15 @@ def step_columns(free, width: int):
     return idx, free[idx] > 0
 
 
-def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first, free=None, width: int | None = None) -> LMState:
+def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first, free=None, width: int | None = None,
+            data_rows: int | None = None) -> LMState:
     """`step` with the residual-and-Jacobian function rj; when `first` is true the step is 0 and
     the point is taken as it is (the state then holds r and J at z and lam = `initial_damping`, as `init` gives, and
     counts no step). `least_squares` starts its loop with such a step, so rj appears once in the compiled loop, not
     also before it: the Jacobian is most of what XLA compiles. free: 0/1 per unknown, the columns of J the step
     uses (None: all); the state keeps every column. width (static, with free): the step is solved on that many
-    columns (`step_columns`; at least the number of free unknowns), not on all of J's with the others zeroed."""
+    columns (`step_columns`; at least the number of free unknowns), not on all of J's with the others zeroed.
+    data_rows (static): where the rows of one non-zero entry each begin (`damped_factor`; None: no such rows)."""
     if free is not None and width is not None:  # the step's unknowns gathered, the step spread back
         idx, valid = step_columns(free, width)
         take = lambda J: J[:, idx] * valid  # noqa: E731
@@ -180,7 +193,7 @@ def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first, fre
     J = take(s.J)
 
     def proposal(_):  # the damped step v and the step taken, v plus half the acceleration
-        U, v = damped_factor(J, s.r, s.lam)
+        U, v = damped_factor(J, s.r, s.lam, data_rows)
         return v, v + 0.5 * jnp.where(s.steps >= ACCEL_AFTER, secant_acceleration(J, U, v, last, s.bend), 0.0)
 
     # the first turn only evaluates the start: its state holds no Jacobian to factor yet (0.4 ms of QR on the
@@ -232,7 +245,8 @@ def starting_with(rj: Callable, start, first) -> Callable:
 
 
 def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: float,
-                  jac: Callable | None = None, limit=None, free=None, width: int | None = None, start=None) -> LMResult:
+                  jac: Callable | None = None, limit=None, free=None, width: int | None = None, start=None,
+                  data_rows: int | None = None) -> LMResult:
     """Minimise |fn(z, args)|^2 from z0 by Levenberg-Marquardt (see the module docstring); jac as in `init`.
     The loop's first turn evaluates r and J at z0 (`advance` with first=True). limit: a traced cap on the
     iterations below max_steps (max_steps sizes the history, so it is static); 0 returns r and J at z0, which is
@@ -240,7 +254,7 @@ def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: 
     free: 0/1 per unknown (traced): only those move, the others' columns of J are left out of every step (None:
     all move); the returned J has every column, so that a caller who fits some unknowns gets the Jacobian of all
     at the solution without evaluating it again. width: `advance`'s (static). start: (r0, J0, given) with given
-    (traced) true: r and J at z0, not evaluated again (`starting_with`)."""
+    (traced) true: r and J at z0, not evaluated again (`starting_with`). data_rows: `advance`'s (static)."""
     cap = max_steps if limit is None else jnp.minimum(max_steps, limit)
     rj = jac or functools.partial(residual_and_jacobian, fn)
     r_shape, J_shape = jax.eval_shape(rj, z0, args)
@@ -250,7 +264,8 @@ def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: 
 
     def body(carry):
         s, hist, first = carry
-        s = advance(rj if start is None else starting_with(rj, start, first), s, args, rtol, atol, first, free, width)
+        s = advance(rj if start is None else starting_with(rj, start, first), s, args, rtol, atol, first, free, width,
+                    data_rows)
         return s, hist.at[s.steps].set(s.r @ s.r), jnp.asarray(False)
 
     s, hist, _ = jax.lax.while_loop(lambda c: c[2] | (~c[0].converged & (c[0].steps < cap) & (c[0].lam < LAM_MAX)),
@@ -266,9 +281,9 @@ class LevenbergMarquardt:
     atol: float
 
     def __call__(self, fn: Callable, z0, args, max_steps: int, jac: Callable | None = None, limit=None, free=None,
-                 width: int | None = None, start=None) -> LMResult:
+                 width: int | None = None, start=None, data_rows: int | None = None) -> LMResult:
         return least_squares(fn, z0, args, max_steps=max_steps, rtol=self.rtol, atol=self.atol, jac=jac, limit=limit,
-                             free=free, width=width, start=start)
+                             free=free, width=width, start=start, data_rows=data_rows)
 
 
 __all__ = ["LMResult", "LMState", "LevenbergMarquardt", "damped_factor", "damped_step", "secant_acceleration",
