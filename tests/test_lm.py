@@ -167,6 +167,26 @@ def test_a_step_on_the_free_columns_alone_is_the_masked_step():
                                    atol=1e-14)
 
 
+def test_rows_of_one_entry_folded_into_the_damping_give_the_damped_step():
+    """`lm.damped_factor(..., data_rows)`: rows past data_rows with one non-zero entry each (the core's bias, pin and
+    bound rows) folded into the damping rows give the same step and U^T U = J^T J + lam I as the whole stack: 30 data
+    rows, 6 columns, singleton rows on columns 0, 2 (twice) and 5, an all-zero row, lam 0 and 1e-3, to 1e-12. Folding
+    wrongly (the rows dropped) misses by the bias rows' pull."""
+    rng = np.random.default_rng(3)
+    data, n = rng.standard_normal((30, 6)), 6
+    singles = np.zeros((5, n))
+    singles[0, 0], singles[1, 2], singles[2, 2], singles[4, 5] = 0.7, -1.3, 2.0, 1e3  # row 3: all zero
+    J = jnp.asarray(np.concatenate([data, singles]))
+    r = jnp.asarray(rng.standard_normal(35))
+    for lam in (0.0, 1e-3):
+        U, step = lm.damped_factor(J, r, lam)
+        U_f, step_f = lm.damped_factor(J, r, lam, data_rows=30)
+        np.testing.assert_allclose(np.asarray(step_f), np.asarray(step), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(U_f.T @ U_f), np.asarray(J.T @ J + lam * jnp.eye(n)), rtol=1e-12, atol=1e-9)
+        dropped = lm.damped_factor(J[:30], r[:30], lam)[1]
+        assert float(jnp.max(jnp.abs(dropped - step))) > 1e-3
+
+
 def test_a_last_step_of_no_predicted_gain_within_the_tolerances_is_not_evaluated():
     """Right after an accepted step, a step whose predicted decrease is at round-off and which is within the step
     tolerances ends the run unevaluated: z is returned as it is, with the residual and Jacobian evaluated there, and

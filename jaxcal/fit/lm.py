@@ -103,7 +103,7 @@ def damped_factor(J, r, lam, data_rows: int | None = None):
     else:
         Jp, rp, J, r = J[data_rows:], r[data_rows:], J[:data_rows], r[:data_rows]
         a = jnp.sqrt(lam + jnp.sum(Jp**2, axis=0))
-        b = (Jp.T @ rp) / a
+        b = (Jp.T @ rp) / jnp.where(a > 0, a, 1.0)  # a = 0 (lam 0, no such row): the column's sum is 0 too
     R = jnp.linalg.qr(jnp.concatenate([J, r[:, None]], axis=1), mode="r")[:n]
     R2 = jnp.linalg.qr(jnp.concatenate([R, jnp.concatenate([jnp.diag(a), b[:, None]], axis=1)]), mode="r")
     return R2[:n, :n], jax.scipy.linalg.solve_triangular(R2[:n, :n], -R2[:n, n], lower=False)
