@@ -99,7 +99,7 @@ def damped_factor(J, r, lam, data_rows: int | None = None):
     332 prior rows, 88 columns: 1.01-1.06 -> 0.83-0.85 ms)."""
     n = J.shape[1]
     if data_rows is None:
-        J, r, a, b = J, r, jnp.full(n, jnp.sqrt(lam), J.dtype), jnp.zeros(n, J.dtype)
+        a, b = jnp.full(n, jnp.sqrt(lam), J.dtype), jnp.zeros(n, J.dtype)
     else:
         Jp, rp, J, r = J[data_rows:], r[data_rows:], J[:data_rows], r[:data_rows]
         a = jnp.sqrt(lam + jnp.sum(Jp**2, axis=0))
@@ -228,8 +228,8 @@ def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first, fre
     keep = lambda new, old: jnp.where(accepted, new, old)  # noqa: E731
     lam = jnp.where(accepted, s.lam * jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), s.lam * s.nu)
     moved = accepted & ~first & ~unevaluated
-    # the start's damping only on the first turn: under jnp.where both sides run, and take and J^2 of every later turn's
-    # Jacobian were ~0.6 ms of the Delta's ~3.5 ms step (716 x 88 gathered columns)
+    # the start's damping only on the first turn: under jnp.where both sides ran, gathering and squaring the step's
+    # columns of every later turn's Jacobian too (the Delta: 716 x 88 entries a step)
     lam = jax.lax.cond(first, lambda: initial_damping(take(J_new)), lambda: lam)
     return LMState(keep(z_new, s.z), keep(r_new, s.r), keep(J_new, s.J), lam,
                    jnp.where(accepted, 2.0, 2.0 * s.nu), s.steps + jnp.where(first, 0, 1), ~first & accepted & final,
