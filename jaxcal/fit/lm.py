@@ -28,8 +28,10 @@ residual r_i by at most atol + rtol |r_i| (such a step is accepted when the cost
 `ROUND_OFF`), or after a step whose predicted decrease |r|^2 - |r + J v|^2 is at most ROUND_OFF |r|^2 (the linear
 model sees nothing left to gain): right after an accepted step, such a step within the step tolerances is not
 evaluated and z is returned as it is (the iteration counts as a step); otherwise the step is evaluated and accepted
-when the cost rises by no more than round-off. Else it stops after max_steps iterations (accepted and rejected)
-unconverged.
+when the cost rises by no more than round-off. A run given a relative decrease `stop` > 0 (a start, which the next
+fit refits: `jaxcal.fit.core.START_STOP`) also stops, converged, at a step whose predicted decrease is at most
+stop |r|^2, z returned as it is without evaluating the step. Else it stops after max_steps iterations (accepted and
+rejected) unconverged.
 Why not optimistix's LM, which the core used before: the same iteration compiled ~1.6x faster here (XLA, 2-core
 CPU: 3.7 s vs 5.9 s for the Stanford arm, 200 positions; 5.0 vs 7.0 s for poses), and compile time is most of
 a first calibration and of the test suite. The residual and its Jacobian come from one forward-mode pass, or from
@@ -173,14 +175,15 @@ def step_columns(free, width: int):
 
 
 def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first, free=None, width: int | None = None,
-            data_rows: int | None = None) -> LMState:
+            data_rows: int | None = None, stop=0.0) -> LMState:
     """`step` with the residual-and-Jacobian function rj; when `first` is true the step is 0 and
     the point is taken as it is (the state then holds r and J at z and lam = `initial_damping`, as `init` gives, and
     counts no step). `least_squares` starts its loop with such a step, so rj appears once in the compiled loop, not
     also before it: the Jacobian is most of what XLA compiles. free: 0/1 per unknown, the columns of J the step
     uses (None: all); the state keeps every column. width (static, with free): the step is solved on that many
     columns (`step_columns`; at least the number of free unknowns), not on all of J's with the others zeroed.
-    data_rows (static): where the rows of one non-zero entry each begin (`damped_factor`; None: no such rows)."""
+    data_rows (static): where the rows of one non-zero entry each begin (`damped_factor`; None: no such rows).
+    stop (traced): a step predicted to lower the cost by at most stop |r|^2 ends the run at z, unevaluated (0: never)."""
     if free is not None and width is not None:  # the step's unknowns gathered, the step spread back
         idx, valid = step_columns(free, width)
         take = lambda J: J[:, idx] * valid  # noqa: E731
@@ -211,14 +214,16 @@ def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first, fre
     # after an accepted step (nu = 2: the damping was just lowered, not raised by rejections) such a step within the
     # step tolerances ends the run at z without being evaluated, the residual and Jacobian being most of an iteration
     # (Stanford arm, 200 poses: the frames-only fit's third step, predicted decrease 1e-15 of the cost, 1.9e-8 in z)
-    unevaluated = negligible & (s.nu <= 2.0) & jnp.all(jnp.abs(delta) <= atol + rtol * jnp.abs(z_new))
+    # a start need not be closer to its optimum than `stop` of its cost: the step that would gain less is not evaluated
+    enough = ~first & (stop > 0) & (predicted <= stop * cost)
+    unevaluated = (negligible & (s.nu <= 2.0) & jnp.all(jnp.abs(delta) <= atol + rtol * jnp.abs(z_new))) | enough
     r_new, J_new = jax.lax.cond(unevaluated, lambda: (s.r, s.J), lambda: rj(z_new, args))
     z_new = jnp.where(unevaluated, s.z, z_new)
     cost_new = r_new @ r_new
     actual = cost - cost_new
     small = (jnp.all(jnp.abs(delta) <= atol + rtol * jnp.abs(z_new))
              & jnp.all(jnp.abs(r_new - s.r) <= atol + rtol * jnp.abs(r_new)))
-    final = small | negligible
+    final = small | negligible | enough
     # a step below the tolerances, or of negligible predicted gain, that leaves the cost unchanged to round-off ends
     # the run: there the gain ratio is a ratio of round-off errors, and rejecting on it only grows lam until some
     # step happens to pass
@@ -246,7 +251,7 @@ def starting_with(rj: Callable, start, first) -> Callable:
 
 def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: float,
                   jac: Callable | None = None, limit=None, free=None, width: int | None = None, start=None,
-                  data_rows: int | None = None) -> LMResult:
+                  data_rows: int | None = None, stop=0.0) -> LMResult:
     """Minimise |fn(z, args)|^2 from z0 by Levenberg-Marquardt (see the module docstring); jac as in `init`.
     The loop's first turn evaluates r and J at z0 (`advance` with first=True). limit: a traced cap on the
     iterations below max_steps (max_steps sizes the history, so it is static); 0 returns r and J at z0, which is
@@ -254,7 +259,8 @@ def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: 
     free: 0/1 per unknown (traced): only those move, the others' columns of J are left out of every step (None:
     all move); the returned J has every column, so that a caller who fits some unknowns gets the Jacobian of all
     at the solution without evaluating it again. width: `advance`'s (static). start: (r0, J0, given) with given
-    (traced) true: r and J at z0, not evaluated again (`starting_with`). data_rows: `advance`'s (static)."""
+    (traced) true: r and J at z0, not evaluated again (`starting_with`). data_rows: `advance`'s (static). stop:
+    `advance`'s (traced; 0: the run ends only by the tolerances, round-off or the step limit)."""
     cap = max_steps if limit is None else jnp.minimum(max_steps, limit)
     rj = jac or functools.partial(residual_and_jacobian, fn)
     r_shape, J_shape = jax.eval_shape(rj, z0, args)
@@ -265,7 +271,7 @@ def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: 
     def body(carry):
         s, hist, first = carry
         s = advance(rj if start is None else starting_with(rj, start, first), s, args, rtol, atol, first, free, width,
-                    data_rows)
+                    data_rows, stop)
         return s, hist.at[s.steps].set(s.r @ s.r), jnp.asarray(False)
 
     s, hist, _ = jax.lax.while_loop(lambda c: c[2] | (~c[0].converged & (c[0].steps < cap) & (c[0].lam < LAM_MAX)),
@@ -281,9 +287,9 @@ class LevenbergMarquardt:
     atol: float
 
     def __call__(self, fn: Callable, z0, args, max_steps: int, jac: Callable | None = None, limit=None, free=None,
-                 width: int | None = None, start=None, data_rows: int | None = None) -> LMResult:
+                 width: int | None = None, start=None, data_rows: int | None = None, stop=0.0) -> LMResult:
         return least_squares(fn, z0, args, max_steps=max_steps, rtol=self.rtol, atol=self.atol, jac=jac, limit=limit,
-                             free=free, width=width, start=start, data_rows=data_rows)
+                             free=free, width=width, start=start, data_rows=data_rows, stop=stop)
 
 
 __all__ = ["LMResult", "LMState", "LevenbergMarquardt", "damped_factor", "damped_step", "secant_acceleration",
