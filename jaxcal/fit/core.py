@@ -727,6 +727,12 @@ class Problem:
         """Weighted residuals (N, m) at the full vector x."""
         return model_residuals(self.model, x, self.q, self.y, self.cov, self.w)
 
+    @functools.cached_property
+    def prior_residuals(self) -> np.ndarray:
+        """The weighted residuals (N, m) at the prior a_ref, evaluated once: `start` compares the registered frame's
+        cost with theirs, and `identify` reports the nominal model's RMS from them."""
+        return self.residuals(self.a_ref)
+
     def jacobian(self, x, columns=None) -> np.ndarray:
         """d(weighted residual)/dx (N*m, P) at the full vector x (`residual_and_jacobian`)."""
         return self.residual_and_jacobian(x, columns)[1]
@@ -1065,7 +1071,7 @@ def start(problem: Problem, settings: Settings) -> tuple[np.ndarray, Solution | 
     prior. Returns (x, frames-only solution, registered)."""
     x = np.array(problem.a_ref, float)
     reg = registered_frame(problem, x)
-    registered = reg is not None and problem.cost(reg) < problem.cost(x)
+    registered = reg is not None and problem.cost(reg) < float(np.sum(np.square(problem.prior_residuals)))
     if registered:
         x = reg
     cand = free_device_entries(problem)

@@ -455,7 +455,7 @@ def identify(
         else:
             hist = _history(problem, cal.x_frames, problem.args(cal.estimated, 0.0, cal.x_frames), settings)
 
-    nominal_p, nominal_o = _rms_mm(problem, problem.a_ref)
+    nominal_p, nominal_o = _rms_mm(problem, problem.a_ref, problem.prior_residuals)
     before_p, before_o = _rms_mm(problem, cal.x_frames, cal.r0)
     after_p, after_o = _rms_mm(problem, cal.x, cal.residuals)
     est_idx = cal.estimated
