@@ -104,9 +104,9 @@ def own_residual_rows() -> list[str]:
     q = jc.random_configurations(delta, 125, seed=2)
     delta_data = jc.simulate(delta, jc.perturb(delta, 1e-3, seed=1), q, device="position", noise=1e-5, seed=3)
     rows = []
-    # the Delta's call takes seconds (its noise-dominated fit chooses the bias by 4-fold held-out error: 25 solves,
-    # ~320 LM steps): the median of 3 calls after the first; scipy's 200 s on it once
-    for label, robot, data, repeat, repeat_sp in (("TALOS left arm, 61 real mocap positions", talos.robot, talos.data, 5, 3),
+    # the Delta's call takes a few hundred ms (its noise-dominated fit chooses the bias by 4-fold held-out error): the
+    # median of 3 calls after the first; scipy's 100 s on it once. TALOS: 15 calls (its 50 ms vary by 10-30 %)
+    for label, robot, data, repeat, repeat_sp in (("TALOS left arm, 61 real mocap positions", talos.robot, talos.data, 15, 3),
                                                   ("Delta (Table 4.6), 125 positions, 0.01 mm noise", delta, delta_data, 3, 1)):
         fit, first, t = first_and_median(lambda: jc.identify(robot, data, sigma_position=1e-3), repeat=repeat)
         t_sp, rms_sp, nfev = scipy_on_own_residual(robot, data, fit, 1e-3, repeat=repeat_sp)
