@@ -223,3 +223,50 @@ def test_a_step_of_negligible_predicted_gain_ends_the_run(monkeypatch):
     assert not bool(s1.converged) and abs(float(s1.z[0])) < 1e-9
     res = lm.least_squares(fn, jnp.full(1, 1e-3), None, max_steps=50, rtol=1e-10, atol=1e-12)
     assert int(res.steps) > 1  # 3 measured: its round-off steps (~1e-10) exceed atol until one happens not to
+
+
+def test_a_start_stops_at_a_small_predicted_gain_without_evaluating_that_step():
+    """`stop` (the core's frames-only start, `core.START_STOP`): the run ends, converged, at a step predicted to lower
+    the cost by at most stop times it, that step not evaluated. Noisy two-exponential fit from (0.8, 0.7, 1.5, 3.5):
+    8 evaluations of r and J without, 6 with stop = 1e-6, the cost then within 1e-6 of the optimum's (measured 2e-7)."""
+
+    def counted(calls):
+        def jac(z, t):
+            jax.debug.callback(lambda: calls.append(1))
+            return lm.residual_and_jacobian(noisy_exponentials, z, t)
+        return jac
+
+    t = jnp.linspace(0.0, 2.0, 40)
+    runs = {}
+    for stop in (0.0, 1e-6):
+        calls = []
+        res = lm.least_squares(noisy_exponentials, jnp.array([0.8, 0.7, 1.5, 3.5]), t, max_steps=200, rtol=1e-10,
+                               atol=1e-12, jac=counted(calls), stop=stop)
+        jax.block_until_ready(res)
+        runs[stop] = (res, len(calls))
+    (full, n_full), (start, n_start) = runs[0.0], runs[1e-6]
+    assert bool(full.converged) and bool(start.converged)
+    assert n_start < n_full, (n_start, n_full)
+    assert float(full.cost) <= float(start.cost) <= float(full.cost) * (1 + 1e-6)
+    assert float(start.history[int(start.steps)]) == float(start.history[int(start.steps) - 1])  # the last step not taken
+
+
+def test_a_start_does_not_stop_on_a_step_that_raised_damping_held_back():
+    """After rejections the damping is large and the damped step predicts a tiny decrease however far the optimum
+    is: `stop` then does not end the run (only while lam is at most its start value `initial_damping`)."""
+    t = jnp.linspace(0.0, 2.0, 40)
+    rj = lambda z, args: lm.residual_and_jacobian(noisy_exponentials, z, args)  # noqa: E731
+    s = lm.init(noisy_exponentials, jnp.array([0.8, 0.7, 1.5, 3.5]), t)
+    s = s._replace(lam=s.lam * 1e16)  # as after ~10 rejections in a row (each multiplies lam by nu, which doubles)
+    v = lm.damped_step(s.J, s.r, s.lam)
+    cost = float(s.r @ s.r)
+    assert 0.0 < cost - float(jnp.sum((s.r + s.J @ v) ** 2)) <= 1e-6 * cost  # the stop's test alone would end here
+    after = lm.advance(rj, s, t, 1e-10, 1e-12, jnp.asarray(False), stop=1e-6)
+    assert not bool(after.converged) and float(jnp.max(jnp.abs(after.z - s.z))) > 0.0  # evaluated and taken
+    at_start = lm.advance(rj, s._replace(lam=lm.initial_damping(s.J) * 1e-6), t, 1e-10, 1e-12, jnp.asarray(False), stop=1e-6)
+    assert not bool(at_start.converged)  # far from the optimum an undamped step predicts a large decrease: no stop
+
+
+def noisy_exponentials(z, t):
+    """`exponentials` plus fixed noise of 1e-3 (40 points): a residual of ~5e-3 at the optimum."""
+    return exponentials(z, t) + 1e-3 * jnp.asarray(np.random.default_rng(0).standard_normal(t.shape[0]))

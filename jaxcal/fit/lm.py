@@ -30,7 +30,8 @@ model sees nothing left to gain): right after an accepted step, such a step with
 evaluated and z is returned as it is (the iteration counts as a step); otherwise the step is evaluated and accepted
 when the cost rises by no more than round-off. A run given a relative decrease `stop` > 0 (a start, which the next
 fit refits: `jaxcal.fit.core.START_STOP`) also stops, converged, at a step whose predicted decrease is at most
-stop |r|^2, z returned as it is without evaluating the step. Else it stops after max_steps iterations (accepted and
+stop |r|^2 while the damping is at most its start value (no rejection has raised it since), z returned as it is
+without evaluating the step. Else it stops after max_steps iterations (accepted and
 rejected) unconverged.
 Why not optimistix's LM, which the core used before: the same iteration compiled ~1.6x faster here (XLA, 2-core
 CPU: 3.7 s vs 5.9 s for the Stanford arm, 200 positions; 5.0 vs 7.0 s for poses), and compile time is most of
@@ -183,7 +184,8 @@ def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first, fre
     uses (None: all); the state keeps every column. width (static, with free): the step is solved on that many
     columns (`step_columns`; at least the number of free unknowns), not on all of J's with the others zeroed.
     data_rows (static): where the rows of one non-zero entry each begin (`damped_factor`; None: no such rows).
-    stop (traced): a step predicted to lower the cost by at most stop |r|^2 ends the run at z, unevaluated (0: never)."""
+    stop (traced): a step predicted to lower the cost by at most stop |r|^2, the damping at most its start value and
+    just lowered, ends the run at z, unevaluated (0: never)."""
     if free is not None and width is not None:  # the step's unknowns gathered, the step spread back
         idx, valid = step_columns(free, width)
         take = lambda J: J[:, idx] * valid  # noqa: E731
@@ -214,8 +216,11 @@ def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first, fre
     # after an accepted step (nu = 2: the damping was just lowered, not raised by rejections) such a step within the
     # step tolerances ends the run at z without being evaluated, the residual and Jacobian being most of an iteration
     # (Stanford arm, 200 poses: the frames-only fit's third step, predicted decrease 1e-15 of the cost, 1.9e-8 in z)
-    # a start need not be closer to its optimum than `stop` of its cost: the step that would gain less is not evaluated
-    enough = ~first & (stop > 0) & (predicted <= stop * cost)
+    # a start need not be closer to its optimum than `stop` of its cost: the step that would gain less is not evaluated.
+    # Only while the damping is at most its start value and was just lowered (nu = 2): a step held back by damping that
+    # rejections raised predicts a small decrease far from the optimum too
+    enough = ~first & (stop > 0) & (predicted <= stop * cost) & (s.nu <= 2.0) & jax.lax.cond(
+        stop > 0, lambda: s.lam <= initial_damping(J), lambda: jnp.asarray(False))
     unevaluated = (negligible & (s.nu <= 2.0) & jnp.all(jnp.abs(delta) <= atol + rtol * jnp.abs(z_new))) | enough
     r_new, J_new = jax.lax.cond(unevaluated, lambda: (s.r, s.J), lambda: rj(z_new, args))
     z_new = jnp.where(unevaluated, s.z, z_new)
