@@ -93,8 +93,11 @@ def test_bias_bounds_and_multistart():
 
 
 def test_history_and_report():
+    """Noisy readings (1e-5): at a noise-free optimum the cost is round-off (~1e-25), and how many steps LM takes
+    there depends on the last bits of its start (a start handed over or evaluated in the program: 4 to 12 steps)."""
     rb = jc.robots.get("mrr1")
-    data = jc.simulate(rb, jc.perturb(rb, 0.003, seed=1), jc.random_configurations(rb, 20, seed=2), "pose")
+    data = jc.simulate(rb, jc.perturb(rb, 0.003, seed=1), jc.random_configurations(rb, 20, seed=2), "pose", noise=1e-5,
+                       seed=3)
     fit = jc.identify(rb, data, known=("dev",), history=True)
     assert fit.history[0] > 1e3 * fit.history[-1]
     # the solve's own record: the start and one cost per step, never rising; a multi-start records a solve from the start
