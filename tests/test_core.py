@@ -443,6 +443,42 @@ def test_a_solve_given_its_start_is_the_solve_that_evaluates_it(name):
         core.solve(problem, first.x + 1e-3, est, settings, ref=a, start=first.read)
 
 
+def test_a_fit_ends_within_its_relative_offset_of_the_optimum(stanford, monkeypatch):
+    """`core.OFFSET_TOL` (Bates and Watts' relative offset): the calibration's fits end, converged, at a step predicted
+    to lower the cost by at most OFFSET_TOL^2 p s^2, that step not evaluated. On 150 noisy poses seen from a far
+    rotated frame the main fit ends one evaluation earlier than without the stop (its last step not taken), at a point
+    whose distance from the optimum that the fit without it reached, |J (x - x_opt)| in weighted readings, is within
+    OFFSET_TOL of the confidence region's radius sqrt(p) s (measured 2e-5 of it). Noise-free readings (s^2 at
+    round-off) run as without it: the same steps and estimate to the bit."""
+    rb, a_true = stanford
+    dev = jc.make_device("pose")
+    noisy = simulated(rb, a_true, "pose", 200, seed=2).split(0.75, seed=0)[0]
+    q = np.asarray(noisy.q)
+    exact = np.asarray(core.readings(rb, dev, np.concatenate([np.asarray(a_true), far_frame(dev)]), q))
+    a_ref = np.concatenate([rb.nominal_np, dev.nominal_np])
+    free = np.concatenate([rb.free_mask, dev.free_mask])
+
+    def calibrations(y):
+        problem = core.make_problem(rb, dev, q, y, weights=np.full(6, 1.0 / NOISE), free=free, a_ref=a_ref)
+        out = {}
+        for tol in (0.0, core.OFFSET_TOL):
+            monkeypatch.setattr(core, "OFFSET_TOL", tol)
+            out[tol] = core.calibrate(problem)
+        return out[0.0], out[core.OFFSET_TOL]
+
+    full, stopped = calibrations(np.asarray(noisy.y))
+    assert full.converged and stopped.converged and stopped.iterations == full.iterations
+    assert stopped.history[-1] == stopped.history[-2] and full.history[-1] < full.history[-2]  # the last step not taken
+    est = full.estimated
+    np.testing.assert_array_equal(stopped.estimated, est)
+    readings, p = int(np.sum(full.problem.w != 0)), len(est)
+    s = np.sqrt(np.sum(full.residuals**2) / (readings - p))
+    offset = np.linalg.norm(full.J[:, est] @ (stopped.x - full.x)[est])
+    assert 0.0 < offset <= core.OFFSET_TOL * np.sqrt(p) * s, (offset, np.sqrt(p) * s)
+    full, stopped = calibrations(exact)
+    assert stopped.iterations == full.iterations and np.array_equal(stopped.x, full.x)
+
+
 def test_the_triangular_factor_answers_for_the_jacobian_whatever_its_rank():
     """`core.triangular` (R = Q^T J): R^T R = J^T J, the singular values and right singular vectors of any columns are
     J's, and least squares on columns of [J r] has J's residual, also for a rank-deficient J (two columns equal, one

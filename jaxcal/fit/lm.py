@@ -29,7 +29,8 @@ residual r_i by at most atol + rtol |r_i| (such a step is accepted when the cost
 model sees nothing left to gain): right after an accepted step, such a step within the step tolerances is not
 evaluated and z is returned as it is (the iteration counts as a step); otherwise the step is evaluated and accepted
 when the cost rises by no more than round-off. A run given a relative decrease `stop` > 0 (a start, which the next
-fit refits: `jaxcal.fit.core.START_STOP`) also stops, converged, at a step whose predicted decrease is at most
+fit refits: `jaxcal.fit.core.START_STOP`; a calibration's fit, at Bates and Watts' relative offset:
+`jaxcal.fit.core.offset_stop`) also stops, converged, at a step whose predicted decrease is at most
 stop |r|^2 while the damping is at most its start value (no rejection has raised it since), z returned as it is
 without evaluating the step. Else it stops after max_steps iterations (accepted and
 rejected) unconverged.
