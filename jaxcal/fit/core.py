@@ -1087,11 +1087,14 @@ def start(problem: Problem, settings: Settings) -> tuple[np.ndarray, Solution | 
     prior. Returns (x, frames-only solution, registered)."""
     x = np.array(problem.a_ref, float)
     reg = registered_frame(problem, x)
-    registered = reg is not None and problem.cost(reg) < float(np.sum(np.square(problem.prior_residuals)))
+    cand = free_device_entries(problem)  # a registered frame is free: not empty then
+    # the device's columns at the start, the frames solve's start; at the registered frame its residuals decide too
+    read = None if reg is None else problem.residual_and_jacobian(reg, cand)
+    registered = read is not None and float(np.sum(np.square(read[0]))) < float(np.sum(np.square(problem.prior_residuals)))
     if registered:
         x = reg
-    cand = free_device_entries(problem)
-    read = problem.residual_and_jacobian(x, cand) if cand.size else None  # the device's columns; the frames solve's start
+    elif cand.size:
+        read = problem.residual_and_jacobian(x, cand)
     dev_idx = frames_estimated(problem, x, None if read is None else read[1])
     if not dev_idx.size:
         return x, None, registered
