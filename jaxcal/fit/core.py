@@ -209,7 +209,9 @@ def open_residual_and_jacobian(robot: Robot, device: Device, x, q, y, w, robot_h
         r, pullback = jax.vjp(reading, tools, d)
         tool_bar, J_d = jax.vmap(pullback)(jnp.eye(r.shape[0], dtype=r.dtype))
         along = twists.wrench(jax.tree_util.tree_map(lambda v: v[None], tools), tool_bar)  # (m, [tips,] 6)
-        J_a = jnp.sum(along.reshape(r.shape[0], -1, 1, 6) * Xi, axis=(1, 3))  # a product summed: fused, unlike a dot of 6-vectors
+        # a dot, so that `along` is computed once: as a product summed, XLA fused it into the loop that writes J and
+        # recomputed the reading's pullback (a pose's rotation log, sines and cosines) for each of the robot's columns
+        J_a = jnp.einsum("mtk,tpk->mp", along.reshape(r.shape[0], -1, 6), Xi.reshape(-1, nr, 6))
         return r, jnp.concatenate([J_a, J_d], axis=1)
 
     r, J = jax.lax.map(one, (q, y, w), batch_size=JACOBIAN_CHUNK)
