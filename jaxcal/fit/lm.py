@@ -145,6 +145,7 @@ class LMState(NamedTuple):
     converged: jnp.ndarray
     last: jnp.ndarray  # the last accepted step (0 before the first)
     bend: jnp.ndarray  # r(z) - r(z_prev) - J(z_prev) last: half the second derivative of r along last
+    lam0: jnp.ndarray  # the damping at the start (`initial_damping` there)
 
 
 def initial_damping(J):
@@ -157,8 +158,9 @@ def init(fn: Callable, z0, args, jac: Callable | None = None) -> LMState:
     """The state at z0 (damping `initial_damping`). jac(z, args) -> (r, J): how to evaluate the residual and its
     Jacobian together (default `residual_and_jacobian` of fn)."""
     r0, J0 = (jac or functools.partial(residual_and_jacobian, fn))(z0, args)
-    return LMState(z0, r0, J0, initial_damping(J0), jnp.asarray(2.0, z0.dtype), jnp.asarray(0), jnp.asarray(False),
-                   jnp.zeros_like(z0), jnp.zeros_like(r0))
+    lam0 = initial_damping(J0)
+    return LMState(z0, r0, J0, lam0, jnp.asarray(2.0, z0.dtype), jnp.asarray(0), jnp.asarray(False),
+                   jnp.zeros_like(z0), jnp.zeros_like(r0), lam0)
 
 
 def step(fn: Callable, s: LMState, args, rtol: float, atol: float, jac: Callable | None = None) -> LMState:
@@ -217,11 +219,10 @@ def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first, fre
     # after an accepted step (nu = 2: the damping was just lowered, not raised by rejections) such a step within the
     # step tolerances ends the run at z without being evaluated, the residual and Jacobian being most of an iteration
     # (Stanford arm, 200 poses: the frames-only fit's third step, predicted decrease 1e-15 of the cost, 1.9e-8 in z)
-    # a start need not be closer to its optimum than `stop` of its cost: the step that would gain less is not evaluated.
-    # Only while the damping is at most its start value and was just lowered (nu = 2): a step held back by damping that
-    # rejections raised predicts a small decrease far from the optimum too
-    enough = ~first & (stop > 0) & (predicted <= stop * cost) & (s.nu <= 2.0) & jax.lax.cond(
-        stop > 0, lambda: s.lam <= initial_damping(J), lambda: jnp.asarray(False))
+    # a run given `stop` (a start; a fit at its relative offset) ends at a step that would gain less, not evaluated.
+    # Only while the damping is at most its start value (kept in the state, no pass over J) and was just lowered
+    # (nu = 2): a step held back by damping that rejections raised predicts a small decrease far from the optimum too
+    enough = ~first & (stop > 0) & (predicted <= stop * cost) & (s.nu <= 2.0) & (s.lam <= s.lam0)
     unevaluated = (negligible & (s.nu <= 2.0) & jnp.all(jnp.abs(delta) <= atol + rtol * jnp.abs(z_new))) | enough
     r_new, J_new = jax.lax.cond(unevaluated, lambda: (s.r, s.J), lambda: rj(z_new, args))
     z_new = jnp.where(unevaluated, s.z, z_new)
@@ -244,7 +245,8 @@ def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first, fre
     lam = jax.lax.cond(first, lambda: initial_damping(take(J_new)), lambda: lam)
     return LMState(keep(z_new, s.z), keep(r_new, s.r), keep(J_new, s.J), lam,
                    jnp.where(accepted, 2.0, 2.0 * s.nu), s.steps + jnp.where(first, 0, 1), ~first & accepted & final,
-                   jnp.where(moved, delta, s.last), jnp.where(moved, r_new - s.r - J @ step_taken, s.bend))
+                   jnp.where(moved, delta, s.last), jnp.where(moved, r_new - s.r - J @ step_taken, s.bend),
+                   jnp.where(first, lam, s.lam0))
 
 
 def starting_with(rj: Callable, start, first) -> Callable:
@@ -272,7 +274,7 @@ def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: 
     r_shape, J_shape = jax.eval_shape(rj, z0, args)
     blank = LMState(z0, jnp.zeros(r_shape.shape, r_shape.dtype), jnp.zeros(J_shape.shape, J_shape.dtype),
                     jnp.asarray(1.0, z0.dtype), jnp.asarray(2.0, z0.dtype), jnp.asarray(0), jnp.asarray(False),
-                    jnp.zeros_like(z0), jnp.zeros(r_shape.shape, r_shape.dtype))
+                    jnp.zeros_like(z0), jnp.zeros(r_shape.shape, r_shape.dtype), jnp.asarray(1.0, z0.dtype))
 
     def body(carry):
         s, hist, first = carry
