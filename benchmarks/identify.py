@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 import scipy.optimize
-from _common import exp_so3_numpy, log_so3_numpy, median_time, stanford_fk_numpy
+from _common import exp_so3_numpy, log_so3_numpy, stanford_fk_numpy
 
 import jaxcal as jc
 
@@ -43,9 +43,11 @@ def numpy_residual(device_kind, names, est_idx, a_start, q, y):
     return res
 
 
-# Calls timed after the first: a 10 ms identify moves by 10-30 % from call to call on this shared 2-core machine, so a
-# median of 5 calls (as before 2026-11-30) could differ by 1-3 ms between two runs of the same code.
-JC_CALLS = 31
+# Calls timed after the first: a 10 ms identify moves by 10-30 % from call to call on this shared 2-core machine, and the
+# machine's speed drifts over tens of seconds (Stanford poses 12-14 ms for a minute, then 9.6 ms, in one process), so
+# the two are timed interleaved: SCIPY_CALLS rounds of JC_PER_ROUND identify calls and one scipy call, each side's
+# median taken (before 2026-11-30 all identify calls came first, then the scipy ones).
+JC_PER_ROUND = 6
 SCIPY_CALLS = 5
 
 
@@ -58,27 +60,24 @@ def run_case(device_kind, noise, seed=1, solver="lm"):
     test = jc.simulate(rb, a_true, q_test, device_kind, noise=noise, seed=seed + 4)
 
     first = jc.identify(rb, data, solver=solver)  # compiles
-    solves = []
-
-    def jc_fit():
-        solves.append(jc.identify(rb, data, solver=solver))
-
-    t_jc = median_time(jc_fit, repeat=JC_CALLS)
-    fit = solves[-1]
-    t_solve = float(np.median([f.timings["run_s"] for f in solves]))
-
-    est_idx = fit.info["estimated_index"]
+    est_idx = first.info["estimated_index"]
     # scipy starts where jc.identify's main solve starts: nominal robot, device frames fitted
     frames_only = jc.identify(rb, data, free=())
     a_start = np.asarray(frames_only.a_full)
-    res = numpy_residual(device_kind, fit.names, est_idx, a_start, q, data.y)
+    res = numpy_residual(device_kind, first.names, est_idx, a_start, q, data.y)
     x0 = a_start[est_idx]
-    out = {}
-
-    def scipy_fit():
+    solves, t_jc, t_sp, out = [], [], [], {}
+    for _ in range(SCIPY_CALLS):
+        for _ in range(JC_PER_ROUND):
+            t = time.perf_counter()
+            solves.append(jc.identify(rb, data, solver=solver))
+            t_jc.append(time.perf_counter() - t)
+        t = time.perf_counter()
         out["sol"] = scipy.optimize.least_squares(res, x0, method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-12)
-
-    t_sp = median_time(scipy_fit, repeat=SCIPY_CALLS)
+        t_sp.append(time.perf_counter() - t)
+    fit = solves[-1]
+    t_jc, t_sp = float(np.median(t_jc)), float(np.median(t_sp))
+    t_solve = float(np.median([f.timings["run_s"] for f in solves]))
     sol = out["sol"]
     a_sp = a_start.copy()
     a_sp[est_idx] = sol.x

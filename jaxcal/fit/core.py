@@ -412,7 +412,8 @@ class Settings:
     (1 cm, 0.01 rad, a gain of 1), so the defaults stop at ~1e-8 m; the stricter 1e-8 / 1e-10 gave the same
     estimate and RMS (6 digits, Stanford arm, 200 poses) after 24 steps instead of 6: past the optimum every
     proposed step is rejected until the trust region has shrunk to round-off. The core's LM also stops after an
-    accepted step whose predicted cost decrease is at round-off (`lm.ROUND_OFF`)."""
+    accepted step whose predicted cost decrease is at round-off (`lm.ROUND_OFF`), and the fits of `calibrate` at
+    their relative offset (`OFFSET_TOL`; 0 there runs them to these tolerances alone)."""
 
     solver: object = "lm"
     max_steps: int = 200
