@@ -1264,7 +1264,8 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
               final_polish: bool = True, progress=None, early_stop=None, early_steps: int = 0) -> Calibration:
     """The calibration path every client uses: start, base set at the start, bias stages (and multi-start), then
     the all-parameter polish (`polish`, with base and final_polish).
-    started: an earlier calibration of the same problem and settings, whose start (and its Jacobian) is reused.
+    started: an earlier calibration of the same problem and settings, whose start (and its Jacobian) is reused; the
+    returned compile_s and run_s then include its own.
     progress: called with a short text as each stage begins (a progress display: `jaxcal calibrate`).
     early_stop(problem, x, J, estimated, r=weighted residuals at x) -> bool, with early_steps > 0, for an unbiased
     single-stage fit by the core's LM without multi-start (the optimistix solvers take no step limit): the fit runs
@@ -1273,7 +1274,8 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
     start with the full step limit (the result is the one without early_stop, at the cost of early_steps iterations)."""
     say = progress or (lambda text: None)
     t0 = time.perf_counter()
-    if started is not None and started.problem is problem:
+    reused = started is not None and started.problem is problem
+    if reused:
         x_frames, registered, r0, J0, frames_ok, compile_s, frames_fitted = (
             started.x_frames, started.registered, started.r0, started.J0, started.frames_converged, 0.0, started.frames_fitted)
     else:
@@ -1338,6 +1340,8 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
             histories.append(polished.history)
             r, J = problem.residual_and_jacobian(x) if polished.J is None else polished.read
     run_s = time.perf_counter() - t0 - compile_s
+    if reused:  # the calibration's times include those of the one whose start it took
+        compile_s, run_s = compile_s + started.compile_s, run_s + started.run_s
     history = np.concatenate(histories) if histories and all(h.size for h in histories) else np.zeros(0)
     return Calibration(problem, x, x_frames, est, undetermined, no_effect, regrouped, J, converged, frames_ok, iterations,
                        registered, compile_s, run_s, history, J0, frames_fitted, polish_record, r0=r0, r=r, factor=R)
