@@ -47,7 +47,7 @@ import optimistix as optx
 from jaxcal import compiled, exported
 from jaxcal.closure.core import forward_with_status
 from jaxcal.fit import buckets
-from jaxcal.fit.base import base_set, upper_factor
+from jaxcal.fit.base import base_set, small_lstsq, upper_factor
 from jaxcal.fit.csvfile import DataError
 from jaxcal.fit.lm import LevenbergMarquardt, residual_and_jacobian
 from jaxcal.forward import forward
@@ -1221,7 +1221,7 @@ def linear_f_ratio(r, J, estimated, added, dof: int, factor=None) -> float:
     T = triangular(J, r) if factor is None else factor
     A, b = T[:, np.concatenate([estimated, added])], T[:, -1]
     A = A / np.maximum(np.linalg.norm(A, axis=0), 1e-300)
-    delta = np.linalg.lstsq(A, -b, rcond=None)[0]
+    delta = small_lstsq(A, -b)
     c1 = float(np.sum((b + A @ delta) ** 2))
     return f_ratio(float(b @ b), c1, len(added), dof)
 

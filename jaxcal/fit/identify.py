@@ -256,24 +256,28 @@ def _device_free(device: Device, known) -> np.ndarray:
 
 @functools.partial(jax.jit, static_argnums=0)
 def _split_errors(device: Device, r):
-    """`device.split_errors` compiled (device static): one call instead of its operations one by one."""
-    return device.split_errors(r)
+    """`device.split_errors` of each of a stack of residual arrays (k, n, m), compiled (device static): one call for
+    all of them instead of one per array (~70 us each) or of its operations one by one."""
+    return jax.vmap(device.split_errors)(r)
 
 
-def _rms_mm(problem: core.Problem, a_full, weighted=None) -> tuple[float | None, float | None]:
-    """(position RMS mm, orientation RMS mrad) of the unweighted per-sample errors over the used samples. weighted:
-    the problem's weighted residuals (N, m) at a_full when the caller has them (divided by the weights, which every
-    used sample has non-zero in each component; else evaluated)."""
+def _rms_mm(problem: core.Problem, points) -> list[tuple[float | None, float | None]]:
+    """(position RMS mm, orientation RMS mrad) of the unweighted per-sample errors over the used samples, at each
+    (a_full, weighted) of points: weighted are the problem's weighted residuals (N, m) at a_full when the caller has
+    them (divided by the weights, which every used sample has non-zero in each component; else evaluated)."""
     unit = residual_weights(problem.device, 1.0, 1.0)
     used = problem.used
-    if weighted is not None and np.all(problem.w[used] != 0):
-        r = np.asarray(weighted)[used] / problem.w[used] * unit
-    else:
-        r = core.weighted_residuals(problem.robot, problem.device, a_full, problem.q, problem.y, unit)[used]
-    n = len(r)  # the program of the sample count's bucket (`buckets`): rows of 0 past the n samples
-    pe, oe = _split_errors(problem.device, buckets.zero_rows(r, buckets.sample_bucket(n)))
-    rms = lambda e: None if e is None else float(np.sqrt(np.mean(np.asarray(e)[:n] ** 2)) * 1e3)  # noqa: E731
-    return rms(pe), rms(oe)
+
+    def unweighted(a_full, weighted):
+        if weighted is not None and np.all(problem.w[used] != 0):
+            return np.asarray(weighted)[used] / problem.w[used] * unit
+        return core.weighted_residuals(problem.robot, problem.device, a_full, problem.q, problem.y, unit)[used]
+
+    errors = [unweighted(a_full, weighted) for a_full, weighted in points]
+    n = len(errors[0])  # the program of the sample count's bucket (`buckets`): rows of 0 past the n samples
+    pe, oe = _split_errors(problem.device, np.stack([buckets.zero_rows(r, buckets.sample_bucket(n)) for r in errors]))
+    rms = lambda e, k: None if e is None else float(np.sqrt(np.mean(np.asarray(e)[k, :n] ** 2)) * 1e3)  # noqa: E731
+    return [(rms(pe, k), rms(oe, k)) for k in range(len(points))]
 
 
 def calibrate_with_default_bias(problem: core.Problem, settings: core.Settings, *, base: bool = True, bias=None,
@@ -455,15 +459,15 @@ def identify(
         else:
             hist = _history(problem, cal.x_frames, problem.args(cal.estimated, 0.0, cal.x_frames), settings)
 
-    nominal_p, nominal_o = _rms_mm(problem, problem.a_ref, problem.prior_residuals)
-    before_p, before_o = _rms_mm(problem, cal.x_frames, cal.r0)
-    after_p, after_o = _rms_mm(problem, cal.x, cal.residuals)
+    (nominal_p, nominal_o), (before_p, before_o), (after_p, after_o) = _rms_mm(
+        problem, [(problem.a_ref, problem.prior_residuals), (cal.x_frames, cal.r0), (cal.x, cal.residuals)])
     est_idx = cal.estimated
     Je = cal.R[:, est_idx]  # J's triangular factor: J's covariance and singular directions (`core.triangular`)
     r_final = cal.residuals.reshape(-1)
     readings = int(np.sum(problem.w != 0))
     mu_end = core.bias_schedule(bias_info.get("bias_schedule", None if isinstance(bias, str) else bias))[-1]
-    covariance, sigma_hat = _covariance(Je, mu_end, problem.x_scale[est_idx], r_final, readings)
+    svd = np.linalg.svd(Je, full_matrices=False)[1:] if Je.size else None  # the covariance's and the weak directions'
+    covariance, sigma_hat = _covariance(Je, mu_end, problem.x_scale[est_idx], r_final, readings, svd)
     polished_se = {}
     if cal.polish.get("accepted"):
         covariance, polished_se = _polished_covariance(cal, r_final, readings, names)
@@ -476,7 +480,7 @@ def identify(
         orientation_rms_after=after_o if after_p is not None else None,
         rms_nominal=pick(nominal_p, nominal_o), iterations=cal.iterations, converged=cal.converged, jacobian=cal.J,
         estimated=to_names(est_idx), undetermined=to_names(cal.undetermined), no_effect=to_names(cal.no_effect),
-        regrouped=to_names(cal.regrouped), weak_directions=_weak_directions(Je, to_names(est_idx)),
+        regrouped=to_names(cal.regrouped), weak_directions=_weak_directions(Je, to_names(est_idx), svd=svd),
         timings={"compile_s": cal.compile_s, "run_s": cal.run_s, "total_s": time.perf_counter() - t_start},
         history=hist, sigma=sigma_hat, covariance=covariance, health=health,
         held_at_start=to_names(i for i in cal.undetermined if i in set(cal.frames_fitted.tolist())),
@@ -504,22 +508,29 @@ def _add_session_summary(fit: FitResult, data: Dataset) -> None:
         fit.health = dataclasses.replace(fit.health, warnings=fit.health.warnings + (msg,))
 
 
-def _covariance(J, mu: float, scale, r, readings: int) -> tuple[np.ndarray | None, float]:
+PINV_RCOND = 1e-15  # numpy.linalg.pinv's default relative cut-off, on the singular values of J^T J (those of J squared)
+
+
+def _covariance(J, mu: float, scale, r, readings: int, svd=None) -> tuple[np.ndarray | None, float]:
     """(covariance, sigma): the linearised covariance of the estimate and the weighted residual's standard
     deviation (seed 004 eq 3.31-3.32). Without bias: sigma^2 (J^T J)^+, sigma^2 = r^T r / (readings - p). With the
     bias mu ||(x - x_ref) / s||^2 still on at the end (seed 004 eq 3.12 read as a prior): A = J^T J + mu
     diag(1 / s^2), covariance sigma^2 A^-1, and the degrees of freedom readings - tr(A^-1 J^T J) (the effective
     number of parameters, below p where the bias holds directions the data leave open). Directions the data do
-    not determine then keep the prior's spread s / sqrt(mu) instead of an arbitrary pseudo-inverse value."""
+    not determine then keep the prior's spread s / sqrt(mu) instead of an arbitrary pseudo-inverse value.
+    svd: (s, Vt) of J (`numpy.linalg.svd`, full_matrices False) when the caller has it: (J^T J)^+ = V diag(1 / s^2) V^T
+    over the s^2 above PINV_RCOND s_1^2, without the squared condition of factoring J^T J itself."""
     if J.shape[1] == 0:
         return None, float(np.sqrt(r @ r / max(readings, 1)))
-    JtJ = J.T @ J
     if mu > 0:
+        JtJ = J.T @ J
         A_inv = np.linalg.inv(JtJ + mu * np.diag(1.0 / np.asarray(scale) ** 2))
         sigma = float(np.sqrt(r @ r / max(readings - np.trace(A_inv @ JtJ), 1.0)))
         return sigma**2 * A_inv, sigma
     sigma = float(np.sqrt(r @ r / max(readings - J.shape[1], 1)))
-    return sigma**2 * np.linalg.pinv(JtJ), sigma
+    s, Vt = np.linalg.svd(J, full_matrices=False)[1:] if svd is None else svd
+    inverse = np.divide(1.0, s**2, out=np.zeros_like(s), where=s**2 > PINV_RCOND * s[0] ** 2)
+    return sigma**2 * (Vt.T * inverse) @ Vt, sigma
 
 
 def _polished_covariance(cal: core.Calibration, r, readings: int, names) -> tuple[np.ndarray, dict]:
@@ -538,11 +549,12 @@ def _polished_covariance(cal: core.Calibration, r, readings: int, names) -> tupl
     return C[np.ix_(pos, pos)], {names[c]: float(se[k]) for k, c in enumerate(cols) if c in set(added.tolist())}
 
 
-def _weak_directions(J, names, rel: float = 1e-8):
-    """Singular directions of J with sigma < rel * sigma_max, as (sigma, {name: component})."""
+def _weak_directions(J, names, rel: float = 1e-8, svd=None):
+    """Singular directions of J with sigma < rel * sigma_max, as (sigma, {name: component}); svd: (s, Vt) of J when
+    the caller has it."""
     if J.size == 0:
         return []
-    _, s, Vt = np.linalg.svd(J, full_matrices=False)
+    s, Vt = np.linalg.svd(J, full_matrices=False)[1:] if svd is None else svd
     out = []
     for k in np.flatnonzero(s < rel * s[0]):
         comp = {names[i]: float(Vt[k, i]) for i in np.argsort(-np.abs(Vt[k]))[:4] if abs(Vt[k, i]) > 0.1}
