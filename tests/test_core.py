@@ -496,6 +496,41 @@ def test_a_fit_ends_within_its_relative_offset_of_the_optimum(stanford, monkeypa
     assert stopped.iterations == full.iterations and np.array_equal(stopped.x, full.x)
 
 
+def test_the_solver_program_returns_the_factor_of_its_jacobian_and_residual(stanford):
+    """`core.data_factor`: the triangular factor T of the data rows' [J r] that a read (`Problem.read`) and a solve
+    asked for it return, computed in the solver's program, is the host's (`core.triangular`): T^T T = [J r]^T [J r]
+    to 1e-12 of its largest entry, after a solve in z with scaled weights too (`solver_residual_and_jacobian`); a
+    solve not asked returns none. The calibration's base set from the read's factor (P + 1 rows) is the one from J
+    (N m rows), and its final stage's factor is the host's of [J r] at the solution."""
+    rb, a_true = stanford
+    dev = jc.make_device("pose")
+    data = simulated(rb, a_true, "pose", 120, seed=5)
+    free = np.concatenate([rb.free_mask, dev.free_mask])
+    problem = core.make_problem(rb, dev, data.q, data.y, weights=np.full(6, 1.0 / NOISE), free=free,
+                                a_ref=np.concatenate([rb.nominal_np, dev.nominal_np]))
+
+    def agrees(T, J, r):
+        A = np.column_stack([J, np.reshape(r, -1)])
+        assert T.shape == (A.shape[1], A.shape[1]) and np.allclose(np.tril(T, -1), 0.0)
+        np.testing.assert_allclose(T.T @ T, A.T @ A, rtol=0, atol=1e-12 * np.max(np.abs(A.T @ A)))
+
+    x = problem.a_ref.copy()
+    x[rb.n_params:] = far_frame(dev)
+    r, J, T = problem.read(x, factor=True)
+    agrees(T, J, r)
+    assert problem.read(x)[2] is None
+    est = np.flatnonzero(free)[::2]
+    sol = core.solve(problem, x, est, core.Settings(), limit=2, factor=True)
+    agrees(sol.factor, sol.J, sol.r)
+    assert core.solve(problem, x, est, core.Settings(), limit=2).factor is None
+    for on_T, on_J in zip(core.choose_estimated(problem, J, True, None, T), core.choose_estimated(problem, J, True, None)):
+        np.testing.assert_array_equal(on_T, on_J)
+    cal = core.calibrate(problem)
+    agrees(cal.factor0, cal.J0, cal.r0)
+    assert cal.factor is not None  # the last stage's factor (its leading block J's), or the polish's
+    np.testing.assert_allclose(cal.R.T @ cal.R, cal.J.T @ cal.J, rtol=0, atol=1e-12 * np.max(np.abs(cal.J.T @ cal.J)))
+
+
 def test_the_triangular_factor_answers_for_the_jacobian_whatever_its_rank():
     """`core.triangular` (R = Q^T J): R^T R = J^T J, the singular values and right singular vectors of any columns are
     J's, and least squares on columns of [J r] has J's residual, also for a rank-deficient J (two columns equal, one

@@ -498,13 +498,28 @@ def _solve_one(x0, args, limit, model, settings: Settings, width: int | None = N
             empty, empty, empty)
 
 
+def data_factor(r, J, args):
+    """T, upper triangular (min(n, P + 1) x (P + 1)), of [J r] over the n data rows of a solve's r and J in z
+    (`triangular`, by XLA's QR in the solver's program: ~0.16 ms for the Stanford arm's 1200 x 56 against ~0.5 ms
+    on the host with its copies), when args["factor"] > 0 (traced; else zeros, not computed); (0, 0) for a solver
+    that returns no J or arguments without "factor". `solver_residual_and_jacobian` takes it to x."""
+    if not J.size or "factor" not in args:
+        return jnp.zeros((0, 0), J.dtype)
+    n = args["w"].size
+    A = jnp.concatenate([J[:n], r[:n, None]], axis=1)
+    k = min(A.shape)
+    return jax.lax.cond(args["factor"] > 0, lambda: jnp.linalg.qr(A, mode="r")[:k], lambda: jnp.zeros((k, A.shape[1]), A.dtype))
+
+
 @functools.partial(jax.jit, static_argnames=("model", "settings", "batched", "width"))
 def _solve_jit(x0, args, limit, *, model, settings, batched, width=None):
-    """One solve (x, converged, steps, cost, history, r, J: `_solve_one`), or a vmapped batch without r and J
-    (their size grows with the batch): `batched` names the entries of args (and "x0") with a leading batch axis."""
+    """One solve (x, converged, steps, cost, history, r, J: `_solve_one`, and T: `data_factor`), or a vmapped batch
+    without r, J and T (their size grows with the batch): `batched` names the entries of args (and "x0") with a
+    leading batch axis."""
     one = functools.partial(_solve_one, limit=limit, model=model, settings=settings, width=width)
     if not batched:
-        return one(x0, args)
+        out = one(x0, args)
+        return (*out, data_factor(out[5], out[6], args))
     axes = {k: (0 if k in batched else None) for k in args}
     return jax.vmap(lambda x, a: one(x, a)[:5], (0 if "x0" in batched else None, axes))(x0, args)
 
@@ -756,45 +771,51 @@ class Problem:
         columns: the indices whose columns are needed (default every one); where none is the robot's, the robot's
         columns are returned as 0 (`holds_robot`: the kinematics are not differentiated). A solve from x takes the
         pair as its `start`."""
+        return self.read(x, columns)[:2]
+
+    def read(self, x, columns=None, factor: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """`residual_and_jacobian` and, with factor, the triangular factor T of the data rows' [J r] at x
+        (`triangular`, computed in the same program: `data_factor`; else None)."""
         P = len(self.names)
         mask = np.ones(P)
         if columns is not None:
             mask = np.zeros(P)
             mask[np.asarray(columns, int)] = 1.0
-        args = self.solver_arrays(x, mask, self.w, 0.0, np.ones(P))
+        args = self.solver_arrays(x, mask, self.w, 0.0, np.ones(P), factor=factor)
         exe, _ = evaluator(self, args)
-        r, J = exe(np.asarray(x, np.float64), args, step_limit(0))[5:]
+        r, J, T = exe(np.asarray(x, np.float64), args, step_limit(0))[5:]
         n = self.w.size
-        return np.asarray(r)[:n].reshape(self.w.shape), np.asarray(J)[:n]
+        return np.asarray(r)[:n].reshape(self.w.shape), np.asarray(J)[:n], (np.asarray(T) if factor else None)
 
-    def solver_arrays(self, ref, mask, w, mu, scale, start=None, stop: float = 0.0) -> dict:
+    def solver_arrays(self, ref, mask, w, mu, scale, start=None, stop: float = 0.0, factor: bool = False) -> dict:
         """The solver's arguments: prior ref (P,), estimated mask (P,), data weights w (N, m), bias mu (a number or
         (P,)), unit of z per entry scale (P,) (`stacked_scaled`), with the problem's data and bounds. start: the data
         rows' (r (N, m), J (N*m, P)) at ref with the weights w, which the solve then does not evaluate again
         (`given_start`); without it, placeholders of the same shapes (one program either way). stop: the core LM's
-        relative decrease that ends a start (`lm.advance`; 0: none)."""
+        relative decrease that ends a start (`lm.advance`; 0: none). factor: the program returns the triangular factor
+        of the data rows' [J r] at its end too (`data_factor`)."""
         f64 = functools.partial(np.asarray, dtype=np.float64)  # numpy: a compiled call takes them as they are
         n, P = self.w.size, len(self.names)
         r0, J0 = (zeros_placeholder((n,)), zeros_placeholder((n, P))) if start is None else (f64(start[0]).reshape(n), f64(start[1]))
         return dict(a_ref=f64(ref), mask=f64(mask), q=f64(self.q), y=f64(self.y), cov=f64(self.cov), w=f64(w), mu=f64(mu),
                     x_scale=f64(scale), lb=f64(self.lb), ub=f64(self.ub),
-                    start=dict(r=r0, J=J0, given=f64(start is not None)), stop=f64(stop))
+                    start=dict(r=r0, J=J0, given=f64(start is not None)), stop=f64(stop), factor=f64(factor))
 
-    def args(self, estimated, mu, ref, start=None, ref_residuals=None, stop: float = 0.0) -> dict:
+    def args(self, estimated, mu, ref, start=None, ref_residuals=None, stop: float = 0.0, factor: bool = False) -> dict:
         """Solver arguments: estimate the indices `estimated`, bias mu (a number, or one per entry) toward
         `ref`. The data weights are divided by the RMS weighted residual over the used samples at `ref`: the
         optimum is unchanged and LM starts with an O(1) residual (optimistix's trust region took 4 to 34
         iterations on the same problem depending on that scale); samples of weight 0 do not enter that RMS,
         so a fold (weight mask) and the subset it selects see the same scaled problem. start: the solve's (r, J) at
         its x0 (`residual_and_jacobian`), scaled alike for the solver (`solver_arrays`); ref_residuals: the weighted
-        residuals at ref when the caller has them (else evaluated here); stop: `solver_arrays`'."""
+        residuals at ref when the caller has them (else evaluated here); stop, factor: `solver_arrays`'."""
         mask = np.zeros(len(self.names))
         mask[np.asarray(estimated, int)] = 1.0
         r = self.residuals(ref) if ref_residuals is None else np.asarray(ref_residuals)
         used = self.used
         rms = max(np.sqrt(np.sum(r[used] ** 2) / max(r[used].size, 1)) if used.any() else 1.0, 1e-12)
         scaled = None if start is None else (np.asarray(start[0]) / rms, np.asarray(start[1]) / rms)
-        return self.solver_arrays(ref, mask, self.w / rms, mu, self.x_scale, scaled, stop)
+        return self.solver_arrays(ref, mask, self.w / rms, mu, self.x_scale, scaled, stop, factor)
 
     def batch_args(self, estimated, mu, refs, weights) -> dict:
         """Arguments of a batch of solves of this problem that differ in their prior refs (B, P) and data
@@ -972,7 +993,8 @@ class Solution:
     the cost at the start and after each step (the core's LM; empty for the optimistix solvers); estimated: the
     indices it moved; J: the data rows' Jacobian at x, every column (`Problem.jacobian`), read off the core's LM
     (None for the other solvers, for a batch, and for a fit of device parameters alone: `Problem.holds_robot`); r:
-    the weighted residuals (N, m) at x that come with J (`Problem.residual_and_jacobian`; None where J is)."""
+    the weighted residuals (N, m) at x that come with J (`Problem.residual_and_jacobian`; None where J is); factor: the
+    triangular factor of [J r] (`triangular`) when the solve was asked for it (`data_factor`), else None."""
 
     x: np.ndarray
     converged: bool
@@ -983,6 +1005,7 @@ class Solution:
     estimated: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, int))
     J: np.ndarray | None = None
     r: np.ndarray | None = None
+    factor: np.ndarray | None = None
 
     @property
     def read(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -990,11 +1013,11 @@ class Solution:
         return None if self.J is None else (self.r, self.J)
 
 
-def solver_residual_and_jacobian(problem: Problem, r_z, J_z, args) -> tuple[np.ndarray, np.ndarray] | None:
-    """`Problem.residual_and_jacobian` at a solve's end from the residual and Jacobian that the core's LM returns
+def solver_residual_and_jacobian(problem: Problem, r_z, J_z, args, T_z=None) -> tuple | None:
+    """(r, J, T): `Problem.read` at a solve's end from the residual, Jacobian and factor that the core's LM returns
     there (in z, with the data weights that `Problem.args` scaled): the data rows, times the weights' scale
-    w / args["w"] (one number), J's columns divided by their x_scale. None when the solver returned none (the
-    optimistix solvers)."""
+    w / args["w"] (one number), J's columns divided by their x_scale, T's alike (R of [J r] D is R D for a positive
+    diagonal D; T_z None: T None). None when the solver returned no J (the optimistix solvers)."""
     J_z = np.asarray(J_z)
     if not J_z.size:
         return None
@@ -1002,7 +1025,9 @@ def solver_residual_and_jacobian(problem: Problem, r_z, J_z, args) -> tuple[np.n
     used = w != 0
     weight_scale = float(np.median(w[used] / w_solver[used])) if used.any() else 1.0
     r = (np.asarray(r_z)[:w.size] * weight_scale).reshape(w.shape)
-    return r, J_z[:w.size] / np.asarray(args["x_scale"]) * weight_scale
+    J = J_z[:w.size] / np.asarray(args["x_scale"]) * weight_scale
+    T = None if T_z is None else np.asarray(T_z) * (np.append(1.0 / np.asarray(args["x_scale"]), 1.0) * weight_scale)
+    return r, J, T
 
 
 def reweighted(read, w_from, w_to) -> tuple[np.ndarray, np.ndarray] | None:
@@ -1015,14 +1040,15 @@ def reweighted(read, w_from, w_to) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, ref=None, limit: int | None = None,
-          start=None, ref_residuals=None, stop: float = 0.0) -> Solution:
+          start=None, ref_residuals=None, stop: float = 0.0, factor: bool = False) -> Solution:
     """Minimise the stacked residual over the `estimated` indices from x0, with bias mu toward ref (default x0);
     limit: at most this many iterations (default settings.max_steps; the same compiled program). start: (r, J) at
     x0 (`Problem.residual_and_jacobian`, `Solution.read`; with the robot's columns 0 only for a solve that holds
     the robot), which the solver then does not evaluate again; x0 must then agree with ref on the entries not
     estimated (the solver holds those at ref). ref_residuals: the problem's weighted residuals (N, m) at ref when the
     caller has them (`Problem.args`' scale; else evaluated there, unless start is at ref). stop: for the core's LM, a
-    step predicted to lower the cost by at most this share of it ends the solve, converged (a start: START_STOP)."""
+    step predicted to lower the cost by at most this share of it ends the solve, converged (a start: START_STOP).
+    factor: the solution carries the triangular factor of [J r] at x (`Solution.factor`), where it carries J."""
     x0 = np.asarray(x0, np.float64)
     ref = x0 if ref is None else np.asarray(ref, np.float64)
     mask = np.zeros(len(x0), bool)
@@ -1030,15 +1056,16 @@ def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, 
     if start is not None and not np.array_equal(np.where(mask, x0, ref), x0):
         raise ValueError("solve: a start (r, J) is at x0, which must agree with ref on the entries not estimated")
     at_ref = start is not None and np.array_equal(x0, ref)
-    args = problem.args(estimated, mu, ref, start, start[0] if at_ref else ref_residuals, stop)
+    args = problem.args(estimated, mu, ref, start, start[0] if at_ref else ref_residuals, stop, factor)
     exe, dt = compiled_model_solver(x0, args, problem.model, settings, width=problem.width_for(args["mask"]))
     cap = settings.max_steps if limit is None else min(limit, settings.max_steps)
-    x, ok, steps, cost, history, r_z, J_z = exe(x0, args, step_limit(cap))
+    x, ok, steps, cost, history, r_z, J_z, T_z = exe(x0, args, step_limit(cap))
     x = np.where(np.asarray(args["mask"]) > 0, np.asarray(x), np.asarray(ref))
     history = np.asarray(history)
-    read = None if problem.holds_robot(args["mask"]) else solver_residual_and_jacobian(problem, r_z, J_z, args)  # robot's 0
-    r, J = (None, None) if read is None else read
-    return Solution(x, bool(ok), int(steps), float(cost), dt, history[np.isfinite(history)], np.asarray(estimated, int), J, r)
+    read = (None if problem.holds_robot(args["mask"])  # the robot's columns 0
+            else solver_residual_and_jacobian(problem, r_z, J_z, args, T_z if factor else None))
+    r, J, T = (None, None, None) if read is None else read
+    return Solution(x, bool(ok), int(steps), float(cost), dt, history[np.isfinite(history)], np.asarray(estimated, int), J, r, T)
 
 
 def solve_batch(problem: Problem, x0s, args, settings: Settings, batched, limit: int | None = None) -> tuple:
@@ -1155,6 +1182,7 @@ class Calibration:
     r0: np.ndarray | None = None  # weighted residuals (N, m) at x_frames, with J0 the first stage's start
     r: np.ndarray | None = None  # weighted residuals (N, m) at x that the last solve returned with J (None: not returned)
     factor: np.ndarray | None = None  # J's triangular factor when `calibrate` has it (`R`)
+    factor0: np.ndarray | None = None  # the triangular factor of [J0 r0] when the start read it (`choose_estimated`)
 
     @functools.cached_property
     def residuals(self) -> np.ndarray:
@@ -1170,16 +1198,18 @@ class Calibration:
         return triangular(self.J) if self.factor is None else self.factor
 
 
-def choose_estimated(problem: Problem, J, base: bool, base_tol: float | None):
+def choose_estimated(problem: Problem, J, base: bool, base_tol: float | None, factor=None):
     """(estimated, undetermined, no_effect, regrouped) index arrays: the base set (seed 001 App. III) of the free
     columns of J under the priorities (pivot threshold base_tol, default BASE_TOL, relative to the largest),
-    or every free column when base is False."""
+    or every free column when base is False. factor: J's triangular factor (`triangular`; of [J r] too) when the
+    caller has it: J = Q R with Q's columns orthonormal, so the columns of R have J's norms and QR pivots, and
+    the base set is found on its P rows instead of J's N m."""
     cand = np.flatnonzero(problem.free)
     if not base:
         e = np.zeros(0, int)
         return cand, e, e, e
     c = (BASE_TOL if base_tol is None else base_tol) / np.finfo(float).eps
-    bs = base_set(J[:, cand], problem.priority[cand], c=c)
+    bs = base_set((J if factor is None else factor)[:, cand], problem.priority[cand], c=c)
     return (np.sort(cand[bs.independent]), np.sort(cand[np.concatenate([bs.regrouped, bs.no_effect])]),
             cand[bs.no_effect], cand[bs.regrouped])
 
@@ -1250,7 +1280,8 @@ def polish(problem: Problem, x, J, estimated, undetermined, settings: Settings, 
     if not predicted > POLISH_F:
         return None, {"tried": False, "predicted_f_ratio": predicted}
     unknowns = np.sort(np.concatenate([estimated, added]))
-    sol = solve(problem, x, unknowns, settings, mu=POLISH_BIAS, ref=x, start=(r, J), stop=offset_stop(problem, len(unknowns)))
+    sol = solve(problem, x, unknowns, settings, mu=POLISH_BIAS, ref=x, start=(r, J), stop=offset_stop(problem, len(unknowns)),
+                factor=True)
     c0, c1 = float(np.sum(np.square(r))), (problem.cost(sol.x) if sol.r is None else float(np.sum(np.square(sol.r))))
     f = f_ratio(c0, c1, len(added), dof) if np.isfinite(c1) else -np.inf
     record = {"tried": True, "accepted": bool(f > POLISH_F and sol.converged), "predicted_f_ratio": predicted,
@@ -1276,8 +1307,9 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
     t0 = time.perf_counter()
     reused = started is not None and started.problem is problem
     if reused:
-        x_frames, registered, r0, J0, frames_ok, compile_s, frames_fitted = (
-            started.x_frames, started.registered, started.r0, started.J0, started.frames_converged, 0.0, started.frames_fitted)
+        x_frames, registered, r0, J0, frames_ok, compile_s, frames_fitted, T0 = (
+            started.x_frames, started.registered, started.r0, started.J0, started.frames_converged, 0.0, started.frames_fitted,
+            started.factor0)
     else:
         say("start: device frame registered, then fitted with the nominal robot")
         P = len(problem.names)  # the solver's program, compiled first: `Problem.jacobian` runs it too
@@ -1288,15 +1320,18 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
             _, compile_s = evaluator(problem, arrays, settings)
             prior.join()
         x_frames, frames_sol, registered = start(problem, settings)
-        r0, J0 = problem.residual_and_jacobian(x_frames) if frames_sol is None or frames_sol.J is None else frames_sol.read
+        # the base set's Jacobian with its factor (`choose_estimated`), read at the start's end
+        r0, J0, T0 = problem.read(x_frames, factor=base) if frames_sol is None or frames_sol.J is None else (*frames_sol.read, None)
         frames_ok = True if frames_sol is None else frames_sol.converged
         compile_s += 0.0 if frames_sol is None else frames_sol.compile_s
         frames_fitted = np.zeros(0, int) if frames_sol is None else frames_sol.estimated
-    est, undetermined, no_effect, regrouped = choose_estimated(problem, J0, base, base_tol)
+    est, undetermined, no_effect, regrouped = choose_estimated(problem, J0, base, base_tol, T0)
     x, iterations, converged, histories = x_frames, 0, True, []
-    read = None if r0 is None else (r0, J0)  # (r, J) at x: the next stage's start
+    read, T = (None if r0 is None else (r0, J0)), T0  # (r, J) at x: the next stage's start; the factor of [J r] there
     stop = offset_stop(problem, len(est))
-    for mu in bias_schedule(bias):
+    schedule, polishing = bias_schedule(bias), base and final_polish
+    for k, mu in enumerate(schedule):
+        factor = polishing and k == len(schedule) - 1  # the polish's F test starts from the last stage's factor
         say(f"fit of {len(est)} parameters" + (f", bias mu = {mu:g}" if mu else "")
             + (f", {multistart + 1} starts" if multistart else ""))
         if multistart:
@@ -1312,30 +1347,31 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
         elif (early_stop is not None and early_steps > 0 and bias_schedule(bias) == [0.0]
               and isinstance(make_solver(settings.solver, settings.rtol, settings.atol), LevenbergMarquardt)):
             sol = solve(problem, x, est, settings, mu, ref=x_frames, limit=early_steps, start=read, ref_residuals=r0,
-                        stop=stop)
+                        stop=stop, factor=factor)
             if not sol.converged and sol.J is not None and early_stop(problem, sol.x, sol.J, est, r=sol.r):
                 return Calibration(problem, sol.x, x_frames, est, undetermined, no_effect, regrouped, sol.J, False,
                                    frames_ok, sol.steps, registered, compile_s + sol.compile_s,
                                    time.perf_counter() - t0 - compile_s - sol.compile_s, sol.history, J0, frames_fitted,
-                                   {"tried": False}, stopped_early=True, r0=r0, r=sol.r)
+                                   {"tried": False}, stopped_early=True, r0=r0, r=sol.r, factor0=T0)
             if not sol.converged:
                 compile_s += sol.compile_s
-                sol = solve(problem, x, est, settings, mu, ref=x_frames, start=read, ref_residuals=r0, stop=stop)
+                sol = solve(problem, x, est, settings, mu, ref=x_frames, start=read, ref_residuals=r0, stop=stop, factor=factor)
         else:
-            sol = solve(problem, x, est, settings, mu, ref=x_frames, start=read, ref_residuals=r0, stop=stop)
+            sol = solve(problem, x, est, settings, mu, ref=x_frames, start=read, ref_residuals=r0, stop=stop, factor=factor)
         histories.append(sol.history)
-        x, compile_s, read = sol.x, compile_s + sol.compile_s, sol.read
+        x, compile_s, read, T = sol.x, compile_s + sol.compile_s, sol.read, sol.factor
         iterations += sol.steps
         converged = converged and sol.converged
     r, J = problem.residual_and_jacobian(x) if read is None else read  # the last stage's solver returned them at x
     polish_record, R = {"tried": False}, None
-    if base and final_polish:
+    if polishing:
         say("final all-parameter stage (tried when it would lower the cost beyond noise)")
-        factor = triangular(J, r)  # the polish's F test and, kept, J's own factor
-        R = factor[:min(J.shape), :J.shape[1]]
-        polished, polish_record = polish(problem, x, J, est, undetermined, settings, r, factor)
+        T = triangular(J, r) if T is None else T  # the polish's F test and, kept, J's own factor
+        R = T[:min(J.shape), :J.shape[1]]
+        polished, polish_record = polish(problem, x, J, est, undetermined, settings, r, T)
         if polished is not None:  # a converged optimum from where the stages stopped, converged or not
-            x, compile_s, converged, R = polished.x, compile_s + polished.compile_s, True, None
+            R = None if polished.factor is None else polished.factor[:min(J.shape), :J.shape[1]]
+            x, compile_s, converged = polished.x, compile_s + polished.compile_s, True
             iterations += polished.steps
             histories.append(polished.history)
             r, J = problem.residual_and_jacobian(x) if polished.J is None else polished.read
@@ -1344,7 +1380,8 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
         compile_s, run_s = compile_s + started.compile_s, run_s + started.run_s
     history = np.concatenate(histories) if histories and all(h.size for h in histories) else np.zeros(0)
     return Calibration(problem, x, x_frames, est, undetermined, no_effect, regrouped, J, converged, frames_ok, iterations,
-                       registered, compile_s, run_s, history, J0, frames_fitted, polish_record, r0=r0, r=r, factor=R)
+                       registered, compile_s, run_s, history, J0, frames_fitted, polish_record, r0=r0, r=r, factor=R,
+                       factor0=T0)
 
 
 def closes(robot: Robot, a, q) -> np.ndarray:
