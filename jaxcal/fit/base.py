@@ -45,9 +45,9 @@ def upper_factor(A, overwrite: bool = False) -> np.ndarray:
 
 def small_lstsq(A, B) -> np.ndarray:
     """A least-squares solution X of A X ~ B for a small A (tens of rows and columns), of minimum norm where A is
-    rank deficient (rank by the condition estimate of A's column-pivoted QR, cut-off eps: LAPACK's dgelsy). The
-    factors `base_set` and `core.linear_f_ratio` solve on are ~56 x 55: dgelsy 58 us against numpy's
-    SVD-based dgelsd 230 us (this 2-core CPU), run several times in every identify."""
+    rank deficient (rank by the condition estimate of A's column-pivoted QR, cut-off eps max(m, n) as numpy's lstsq:
+    LAPACK's dgelsy). The factors `base_set` and `core.linear_f_ratio` solve on are ~56 x 55: dgelsy 58 us against
+    numpy's SVD-based dgelsd 230 us (this 2-core CPU), run several times in every identify."""
     return scipy.linalg.lstsq(A, B, cond=np.finfo(float).eps * max(np.shape(A)), lapack_driver="gelsy", check_finite=False)[0]
 
 
