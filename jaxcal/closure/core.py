@@ -42,6 +42,7 @@ from jaxcal.kin.model import Robot, frames_single, joint_variables, map_leading_
 from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import quat_from_matrix
 from jaxcal.linalg import solve_small
+from jaxcal.loops import varying_with
 
 CLOSURE_KINDS = ("full", "position")
 SOLVERS = ("track", "lm", "newton")
@@ -225,7 +226,8 @@ def newton_lm(fn, start, max_steps: int, tol: float):
         return (jnp.where(better, trial, th), jnp.where(better, trial_norm, norm),
                 jnp.where(better, jnp.maximum(mu * 0.1, 1e-15), mu * 10.0), k + 1)
 
-    th, _, _, k = jax.lax.while_loop(cond, body, (start, jnp.linalg.norm(fn(start)), jnp.asarray(1e-6), 0))
+    init = (start, jnp.linalg.norm(fn(start)), jnp.asarray(1e-6), jnp.asarray(0))
+    th, _, _, k = jax.lax.while_loop(cond, body, varying_with(start, init))
     return th, k
 
 

@@ -48,6 +48,7 @@ from jaxcal.kin.model import joint_variables
 from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import rot_x, rot_y
 from jaxcal.linalg import solve_small
+from jaxcal.loops import varying_with
 
 CLOSURE_TOL = 1e-10  # closure residual norm above which a sample is infeasible (seed 004 §4.3)
 NEWTON_STEPS = 12
@@ -342,7 +343,7 @@ def _newton_step(robot, st, fixed, s: NewtonState, active=True) -> NewtonState:
         t, F, _ = c
         return active & (jnp.sum(F**2) >= f0) & (t > 0.5**NEWTON_HALVINGS)
 
-    t, F, J = jax.lax.while_loop(worse, lambda c: trial(0.5 * c[0]), trial(jnp.asarray(1.0, s.x.dtype)))
+    t, F, J = jax.lax.while_loop(worse, lambda c: trial(0.5 * c[0]), varying_with(s.x, trial(jnp.asarray(1.0, s.x.dtype))))
     return jax.tree_util.tree_map(lambda n, o: jnp.where(active, n, o), NewtonState(s.x - t * d, F, J, s.evals + 1), s)
 
 
@@ -353,7 +354,7 @@ def _newton(robot, st, fixed, x0):
     divergence from a start outside Newton's basin (near the ball joint's gimbal lock plain Newton left 8 steps at
     |x - x0| ~ 3.8e3 rad where the damped one closed in 9)."""
     s = jax.lax.while_loop(_newton_more, lambda s: _newton_step(robot, st, fixed, s, _newton_more(s)),
-                           _newton_start(robot, st, fixed, x0))
+                           varying_with(x0, _newton_start(robot, st, fixed, x0)))
     return s.x, jnp.max(jnp.abs(s.F)), s.evals
 
 
@@ -468,7 +469,7 @@ def tracked_samples(run, qj, x0, need) -> Tracked:
         keep = jnp.where(active, idx, n)  # inactive lanes write nowhere
         return start + TRACKED_CHUNK, jax.tree_util.tree_map(lambda a, g: a.at[keep].set(g, mode="drop"), acc, got)
 
-    return jax.lax.while_loop(lambda state: state[0] < count, chunk, (jnp.asarray(0, order.dtype), out))[1]
+    return jax.lax.while_loop(lambda state: state[0] < count, chunk, varying_with(x0, (jnp.asarray(0, order.dtype), out)))[1]
 
 
 def _turned(nacelle: Pose, frames, dx) -> Pose:

@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxcal.linalg import solve_small
+from jaxcal.loops import varying_with
 
 CLOSED, UNCLOSED, OTHER_MODE = 0, 1, 2
 STATUS_NAMES = {CLOSED: "closed", UNCLOSED: "unclosed", OTHER_MODE: "other assembly mode"}
@@ -138,7 +139,7 @@ def _settle(fn_t, t, x, damped, tol, loose, active, max_steps: int = 100, path: 
     init = _Settle(x, x, inf, jnp.asarray(1e-6, x.dtype), jnp.asarray(0), jnp.asarray(False), x, x, inf, inf,
                    jnp.asarray(True), jnp.asarray(0), jnp.asarray(False), jnp.zeros((m, x.shape[0]), x.dtype),
                    jnp.zeros(m, x.dtype))
-    return jax.lax.while_loop(cond, body, init)
+    return jax.lax.while_loop(cond, body, varying_with(x, init))
 
 
 def corrector(fn, x, tol, active=True, loose=None):
@@ -195,7 +196,7 @@ def track(fn_t, x_init, tol, active=True, loose=None) -> Tracked:
     m = jax.eval_shape(fn_t, x_init, zero).shape[0]
     init = (x_init, jnp.zeros((m, x_init.shape[0]), x_init.dtype), jnp.zeros(m, x_init.dtype), zero, jnp.ones_like(zero),
             jnp.asarray(0), jnp.asarray(0), jnp.asarray(False), jnp.asarray(True))
-    x, _, _, t, _, _, n, ok0, _ = jax.lax.while_loop(cond, body, init)
+    x, _, _, t, _, _, n, ok0, _ = jax.lax.while_loop(cond, body, varying_with(x_init, init))
     return Tracked(x, ok0 & (t >= 1.0), n, ok0)
 
 

@@ -49,6 +49,8 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxcal.loops import varying_with
+
 ACCEPT = 1e-3  # smallest gain ratio of an accepted step
 # Initial damping relative to the largest diagonal entry of J^T J. Madsen et al. (§3.2) advise 1e-6 when the start
 # is believed close to the solution, 1e-3 otherwise; the core starts from the nominal robot with the device frames
@@ -283,7 +285,8 @@ def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: 
         return s, hist.at[s.steps].set(s.r @ s.r), jnp.asarray(False)
 
     s, hist, _ = jax.lax.while_loop(lambda c: c[2] | (~c[0].converged & (c[0].steps < cap) & (c[0].lam < LAM_MAX)),
-                                    body, (blank, jnp.full(max_steps + 1, jnp.nan, z0.dtype), jnp.asarray(True)))
+                                    body, varying_with(z0, (blank, jnp.full(max_steps + 1, jnp.nan, z0.dtype),
+                                                            jnp.asarray(True))))
     return LMResult(s.z, s.converged, s.steps, s.r @ s.r, hist, s.r, s.J)
 
 
