@@ -1,6 +1,7 @@
 """Loop carries that vary with an input, so that `vmap` of a `jax.lax.while_loop` traces its body fewer times.
 
-`vmap` batches a while loop by a fixpoint over which carry entries are batched (jax `_while_loop_batching_rule`):
+`vmap` batches a while loop by a fixpoint over which carry entries are batched (jax `_while_loop_batching_rule`;
+`scan`, and so `fori_loop` with fixed bounds, alike):
 it batches the body with the entries batched at the start, again with those the body's output makes batched, and
 once more to build the loop it runs. A carry started from constants (zeros, a counter, a flag) next to a batched
 input therefore costs three batchings of the body instead of two, and a loop nested in another's body is batched

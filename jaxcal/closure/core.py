@@ -272,7 +272,7 @@ def _continuation(robot: Robot, a, qj, start, from_home: bool, active) -> Tracke
         return merged._replace(steps=out.steps + res.steps)
 
     none = Tracked(start, jnp.asarray(False), jnp.asarray(0), jnp.asarray(False))
-    return jax.lax.fori_loop(0, 2 if from_home else 1, attempt, none)
+    return jax.lax.fori_loop(0, 2 if from_home else 1, attempt, varying_with(start, none))
 
 
 def _is_closed(robot, a, qj, theta):

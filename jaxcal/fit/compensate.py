@@ -23,6 +23,7 @@ import jax.numpy as jnp
 
 from jaxcal.autodiff import value_and_jacfwd
 from jaxcal.forward import forward
+from jaxcal.loops import varying_with
 
 
 class Compensation(NamedTuple):
@@ -52,7 +53,7 @@ def _newton(robot, a, targets, q0, steps):
             moved = qk - jnp.linalg.solve(J, p - target)
             return jnp.where(i < steps, moved, qk), jnp.linalg.norm(p - target)
 
-        return jax.lax.fori_loop(0, steps + 1, step, (q, jnp.zeros((), q.dtype)))
+        return jax.lax.fori_loop(0, steps + 1, step, varying_with(q, (q, jnp.zeros((), q.dtype))))
 
     return jax.vmap(one)(targets, q0)
 
