@@ -6,8 +6,9 @@ it batches the body with the entries batched at the start, again with those the 
 once more to build the loop it runs. A carry started from constants (zeros, a counter, a flag) next to a batched
 input therefore costs three batchings of the body instead of two, and a loop nested in another's body is batched
 once per batching of the outer body: three levels of loops cost 27 batchings of the innermost body instead of 8.
-The Delta's batch closure (`jaxcal.closure.delta.forward`, a continuation in a Newton loop in a chunk loop) traced
-in 2.6 s, 1.3 s with its carries tied to the batched start (docs/benchmarks.md, twenty-third session).
+The Delta's batch closure (`jaxcal.closure.delta.forward`: the corrector loop of `track` in its path loop, in the
+chunk loop of `tracked_samples`) traced in 2.6 s, 1.3 s with its carries tied to the batched start
+(docs/benchmarks.md, twenty-third session).
 
 The loop the batched rule builds is the same either way: with a batched predicate (every loop here stops per
 lane) every carry entry ends up batched, so tying the start changes no computation.
