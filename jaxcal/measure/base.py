@@ -47,16 +47,35 @@ def frame_names(prefix: str, parts=FRAME) -> tuple[str, ...]:
     return tuple(f"{prefix}.{p}" for p in parts)
 
 
+def array_module(*values):
+    """jax.numpy when any of the values is a JAX array (a tracer under jit / vmap included), else numpy.
+
+    `simulate` adds noise to readings on the host with numpy's generator: there the sums stay numpy. Run by jax
+    op by op, each of them compiled a small program per sample count (a pose reading's noise: 11 programs,
+    ~1 s of a first `simulate`)."""
+    return jnp if any(isinstance(v, jax.Array) for v in values) else np
+
+
 def additive_noise(y, normal: Normal, sigma):
     """y + sigma n, n standard normal of y's shape (one draw)."""
-    return jnp.asarray(y) + sigma * normal(jnp.shape(y))
+    n = normal(np.shape(y))
+    xp = array_module(y, n, sigma)
+    return xp.asarray(y) + sigma * n
+
+
+@jax.jit
+def _rotated(v, R):
+    """exp(v_i) R_i for rotation vectors v (N, 3) and rotations R (N, 3, 3): one program per N, not one per operation
+    of `exp_so3`."""
+    return jax.vmap(exp_so3)(v) @ R
 
 
 def rotation_noise(R, normal: Normal, sigma):
     """dR R for each rotation R (N, 3, 3), dR = exp(sigma n) with n (N, 3) standard normal (one draw):
     a random small rotation applied in the reading frame."""
-    dR = jax.vmap(exp_so3)(jnp.asarray(sigma * normal((jnp.shape(R)[0], 3))))
-    return dR @ jnp.asarray(R)
+    v = sigma * normal((np.shape(R)[0], 3))
+    out = _rotated(jnp.asarray(v, dtype=jnp.float64), jnp.asarray(R, dtype=jnp.float64))
+    return out if array_module(R, v) is jnp else np.asarray(out)
 
 
 def key_normal(key) -> Normal:

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.kin.rotations import log_so3
-from jaxcal.measure.base import FRAME_INDEX, Device, additive_noise, frame_from_params, frame_names, rotation_noise
+from jaxcal.measure.base import FRAME_INDEX, Device, additive_noise, array_module, frame_from_params, frame_names, rotation_noise
 from jaxcal.measure.registry import register
 
 
@@ -40,9 +40,13 @@ class FullPose(Device):
 
     def add_noise(self, y, normal, sigma_position, sigma_orientation):
         """Position p + sigma_position n1, n1 (N, 3), then rotation exp(sigma_orientation n2) R, n2 (N, 3)."""
-        y = jnp.asarray(y)
-        y = y.at[:, :3, 3].set(additive_noise(y[:, :3, 3], normal, sigma_position))
-        return y.at[:, :3, :3].set(rotation_noise(y[:, :3, :3], normal, sigma_orientation))
+        p = additive_noise(y[:, :3, 3], normal, sigma_position)
+        R = rotation_noise(y[:, :3, :3], normal, sigma_orientation)
+        if array_module(y, p, R) is jnp:
+            return jnp.asarray(y).at[:, :3, 3].set(p).at[:, :3, :3].set(R)
+        y = np.array(y, dtype=float)  # host readings (`simulate`): set in a copy
+        y[:, :3, 3], y[:, :3, :3] = p, R
+        return y
 
     def points(self, y):
         return y[:, None, :3, 3]

@@ -23,7 +23,7 @@ import re
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.measure.base import Device
+from jaxcal.measure.base import Device, array_module
 
 SESSION = "session"  # the covariate that labels each sample's session
 
@@ -119,10 +119,10 @@ class Sessions(Device):
         return self.inner.split_errors(res)
 
     def add_noise(self, y, normal, sigma_position, sigma_orientation):
-        y = jnp.asarray(y)
         inner = self.inner.add_noise(y[:, :-1].reshape((len(y),) + self.inner.reading_shape), normal, sigma_position,
                                      sigma_orientation)
-        return jnp.concatenate([inner.reshape(len(y), -1), y[:, -1:]], axis=1)
+        xp = array_module(y, inner)
+        return xp.concatenate([xp.reshape(inner, (len(y), -1)), xp.asarray(y)[:, -1:]], axis=1)
 
     def points(self, y):
         """The marker points of measured readings (N, size + 1), per the wrapped device."""

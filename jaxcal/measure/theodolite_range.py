@@ -9,8 +9,9 @@ can be started by rigid registration like a position device's."""
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
-from jaxcal.measure.base import FRAME_INDEX, XYZ, Device, frame_from_params, frame_names
+from jaxcal.measure.base import FRAME_INDEX, XYZ, Device, array_module, frame_from_params, frame_names
 from jaxcal.measure.registry import register
 from jaxcal.measure.theodolite import sight_angles, wrap_angle
 
@@ -53,7 +54,9 @@ class TheodoliteRange(Device):
 
     def add_noise(self, y, normal, sigma_position, sigma_orientation):
         """y + (sigma_orientation, sigma_orientation, sigma_position) n, n (N, 3) standard normal, one draw."""
-        return jnp.asarray(y) + jnp.array([sigma_orientation, sigma_orientation, sigma_position]) * normal(jnp.shape(y))
+        n = normal(np.shape(y))
+        xp = array_module(y, n, sigma_position, sigma_orientation)
+        return xp.asarray(y) + xp.stack([sigma_orientation, sigma_orientation, sigma_position]) * n
 
     @property
     def n_points(self) -> int:
