@@ -8,7 +8,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxcal.kin.rotations import log_so3
-from jaxcal.measure.base import FRAME_INDEX, Device, additive_noise, array_module, frame_from_params, frame_names, rotation_noise
+from jaxcal.measure.base import (
+    FRAME_INDEX,
+    Device,
+    additive_noise,
+    array_module,
+    frame_from_params,
+    frame_names,
+    host_or_jax,
+    rotation_noise,
+)
 from jaxcal.measure.registry import register
 
 
@@ -40,6 +49,7 @@ class FullPose(Device):
 
     def add_noise(self, y, normal, sigma_position, sigma_orientation):
         """Position p + sigma_position n1, n1 (N, 3), then rotation exp(sigma_orientation n2) R, n2 (N, 3)."""
+        y = host_or_jax(y)
         p = additive_noise(y[:, :3, 3], normal, sigma_position)
         R = rotation_noise(y[:, :3, :3], normal, sigma_orientation)
         if array_module(y, p, R) is jnp:

@@ -23,7 +23,7 @@ import re
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.measure.base import Device, array_module
+from jaxcal.measure.base import Device, array_module, host_or_jax
 
 SESSION = "session"  # the covariate that labels each sample's session
 
@@ -119,6 +119,7 @@ class Sessions(Device):
         return self.inner.split_errors(res)
 
     def add_noise(self, y, normal, sigma_position, sigma_orientation):
+        y = host_or_jax(y)
         inner = self.inner.add_noise(y[:, :-1].reshape((len(y),) + self.inner.reading_shape), normal, sigma_position,
                                      sigma_orientation)
         xp = array_module(y, inner)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.measure.base import FRAME_INDEX, XYZ, Device, array_module, frame_from_params, frame_names
+from jaxcal.measure.base import FRAME_INDEX, XYZ, Device, array_module, frame_from_params, frame_names, host_or_jax
 from jaxcal.measure.registry import register
 from jaxcal.measure.theodolite import sight_angles, wrap_angle
 
@@ -54,6 +54,7 @@ class TheodoliteRange(Device):
 
     def add_noise(self, y, normal, sigma_position, sigma_orientation):
         """y + (sigma_orientation, sigma_orientation, sigma_position) n, n (N, 3) standard normal, one draw."""
+        y = host_or_jax(y)
         n = normal(np.shape(y))
         xp = array_module(y, n, sigma_position, sigma_orientation)
         return xp.asarray(y) + xp.stack([sigma_orientation, sigma_orientation, sigma_position]) * n
