@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import os
 
-import jax
-import jax.numpy as jnp
 import numpy as np
+
+from jaxcal.arrays import array_module
 
 SAMPLE_BUCKETS_PER_OCTAVE = int(os.environ.get("JAXCAL_SAMPLE_BUCKETS", "16"))
 SAMPLE_ARRAYS = ("q", "y", "cov")  # solver arguments with one row per sample, padded by repeating a sample in use
@@ -35,15 +35,9 @@ def sample_bucket(n: int, per_octave: int | None = None) -> int:
     return -(-n // step) * step
 
 
-def _array_module(a):
-    """jax.numpy for a JAX array (padded where it lives: Monte Carlo readings drawn on an accelerator stay there),
-    else numpy."""
-    return jnp if isinstance(a, jax.Array) else np
-
-
 def repeat_row(a, size: int, row: int, axis: int = 0):
     """a with its `axis` extended to `size` by copies of index `row` along it."""
-    xp = _array_module(a)
+    xp = array_module(a)
     a = xp.asarray(a)
     extra = size - a.shape[axis]
     if extra <= 0:
@@ -54,7 +48,7 @@ def repeat_row(a, size: int, row: int, axis: int = 0):
 
 def zero_rows(a, size: int, axis: int = 0):
     """a with its `axis` extended to `size` by zeros."""
-    xp = _array_module(a)
+    xp = array_module(a)
     a = xp.asarray(a)
     shape = list(a.shape)
     shape[axis] = size - a.shape[axis]

@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal.arrays import array_module, host_or_jax
 from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import exp_so3
 
@@ -45,20 +46,6 @@ def frame_from_params(v) -> Pose:
 def frame_names(prefix: str, parts=FRAME) -> tuple[str, ...]:
     """Parameter names `prefix.part`, e.g. ("dev.x", ..., "dev.rz")."""
     return tuple(f"{prefix}.{p}" for p in parts)
-
-
-def array_module(*values):
-    """jax.numpy when any of the values is a JAX array (a tracer under jit / vmap included), else numpy.
-
-    `simulate` adds noise to readings on the host with numpy's generator: there the sums stay numpy. Run by jax
-    op by op, each of them compiled a small program per sample count (200 Stanford poses: 41 programs, ~0.9 s of a
-    first `simulate`)."""
-    return jnp if any(isinstance(v, jax.Array) for v in values) else np
-
-
-def host_or_jax(y):
-    """y itself when it is a JAX array (or a tracer), else y as a float numpy array."""
-    return y if isinstance(y, jax.Array) else np.asarray(y, dtype=float)
 
 
 def additive_noise(y, normal: Normal, sigma):

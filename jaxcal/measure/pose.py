@@ -7,17 +7,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from jaxcal.arrays import array_module, host_or_jax
 from jaxcal.kin.rotations import log_so3
-from jaxcal.measure.base import (
-    FRAME_INDEX,
-    Device,
-    additive_noise,
-    array_module,
-    frame_from_params,
-    frame_names,
-    host_or_jax,
-    rotation_noise,
-)
+from jaxcal.measure.base import FRAME_INDEX, Device, additive_noise, frame_from_params, frame_names, rotation_noise
 from jaxcal.measure.registry import register
 
 

@@ -23,7 +23,8 @@ import re
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.measure.base import Device, array_module, host_or_jax
+from jaxcal.arrays import array_module, host_or_jax
+from jaxcal.measure.base import Device
 
 SESSION = "session"  # the covariate that labels each sample's session
 

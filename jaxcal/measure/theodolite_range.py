@@ -11,7 +11,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from jaxcal.measure.base import FRAME_INDEX, XYZ, Device, array_module, frame_from_params, frame_names, host_or_jax
+from jaxcal.arrays import array_module, host_or_jax
+from jaxcal.measure.base import FRAME_INDEX, XYZ, Device, frame_from_params, frame_names
 from jaxcal.measure.registry import register
 from jaxcal.measure.theodolite import sight_angles, wrap_angle
 
