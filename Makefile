@@ -35,8 +35,9 @@ demo: $(STAMP)
 # are listed at the end (issue 18: where the suite's time goes).
 # tests/conftest.py gives the runs of this checkout one cache of compiled code (.cache/test-xla), shared by both
 # workers and kept for the next run (a fresh clone starts empty),
-# and compiles with XLA:CPU's elemental emitter, at LLVM level 0 for the fast run (`-m 'not slow'`: it compiles faster; the
-# slow studies run faster at the default level), docs/benchmarks.md.
+# compiles with XLA:CPU's elemental emitter, at LLVM level 0 for the fast run (`-m 'not slow'`: it compiles faster; the
+# slow studies run faster at the default level), and has the workers allocate with jemalloc where the system has it
+# (Debian's libjemalloc2, which .ci/run installs), docs/benchmarks.md.
 PYTEST_RUN := $(BIN)/python -m pytest -n 2 --dist worksteal --max-worker-restart 4 --reruns 1 --rerun-except . --durations=20
 
 test: $(STAMP)

@@ -144,3 +144,16 @@ def test_clearing_compiled_code_gives_back_its_memory_mappings():
     compiled.clear()
     assert grown - before > 100, (before, grown)
     assert compiled.mapped_regions() - before < 0.1 * (grown - before) and "probe" not in core._COMPILED
+
+
+def test_a_test_worker_allocates_with_the_test_allocator_where_the_system_has_it():
+    """tests/conftest.py puts TEST_ALLOCATOR (jemalloc) in LD_PRELOAD for the xdist workers: this worker has it mapped."""
+    import ctypes.util
+
+    from conftest import TEST_ALLOCATOR
+
+    allocator = ctypes.util.find_library(TEST_ALLOCATOR)
+    if "PYTEST_XDIST_WORKER" not in os.environ or allocator is None or os.environ.get("LD_PRELOAD") != allocator:
+        pytest.skip("not a test worker given the allocator (no xdist, no jemalloc, or the user's own LD_PRELOAD)")
+    with open("/proc/self/maps") as maps:
+        assert allocator in maps.read()
