@@ -76,9 +76,10 @@ GC_THRESHOLDS = (10_000, 50, 20)
 # run's flags: _int_malloc, malloc, unlink_chunk, _int_free, malloc_consolidate, cfree). Four compile-bound test files
 # (test_twists, test_grid, test_core, test_delta; two workers, fresh cache, 2026-11-30): 111.0-116.0 s wall with glibc,
 # 91.6-97.5 s with jemalloc, 92.7-94.2 s with Debian's mimalloc 2.0, 99.7 s with tcmalloc, 99.0-117.4 s with mimalloc 3.4
-# (the cmeel-mimalloc wheel). Set by the first pytest process in LD_PRELOAD, which the xdist workers (started after
-# pytest_configure) and their child processes inherit; never over a user's LD_PRELOAD (`LD_PRELOAD= make test` runs
-# with glibc's malloc).
+# (the cmeel-mimalloc wheel); the whole fast suite, one worker each, both runs at once: 730 -> 685 s of CPU, peak memory
+# 4.8 -> 3.9 GB (docs/benchmarks.md, twenty-fifth session). Set by the first pytest process in LD_PRELOAD, which the
+# xdist workers (started after pytest_configure) and their child processes inherit; never over a user's LD_PRELOAD
+# (`LD_PRELOAD= make test` runs with glibc's malloc).
 TEST_ALLOCATOR = "jemalloc"
 
 
