@@ -114,3 +114,11 @@ def test_rotation_gradients_match_central_differences(rng):
               lambda v: rt.log_so3(rt.exp_so3(v))):
         J = np.asarray(jax.jacfwd(f)(jnp.asarray(x))).reshape(-1, 3)
         assert rel_err(J, central_fd(f, x)) < 1e-7
+
+
+def test_principal_rotation_is_rot_x_y_z_on_the_host():
+    """The numpy rotations for host constants equal rot_x / rot_y / rot_z (1e-15) at any angle."""
+    for angle in np.random.default_rng(3).uniform(-4, 4, 5):
+        for axis, rot in enumerate((rt.rot_x, rt.rot_y, rt.rot_z)):
+            R = rt.principal_rotation(axis, angle)
+            assert isinstance(R, np.ndarray) and np.allclose(R, np.asarray(rot(angle)), rtol=0, atol=1e-15)

@@ -46,6 +46,7 @@ from jaxcal.closure.core import solve as solve_generic
 from jaxcal.closure.track import CLOSED, OTHER_MODE, UNCLOSED, Tracked, track
 from jaxcal.kin.model import joint_variables
 from jaxcal.kin.pose import Pose
+from jaxcal.kin.rotations import principal_rotation
 from jaxcal.linalg import solve_small
 from jaxcal.loops import varying_with
 
@@ -165,10 +166,7 @@ NACELLE, TOOL = 9, 30
 CLOSURES = (10, 11, 12, 13, 14)  # nacelle ends of rods 2-6 (spherical closures)
 RODS = ((15, 16, 17), (18, 19, 20), (21, 22, 23), (24, 25, 26), (27, 28, 29))  # universal + rod end
 R_NACELLE = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # nominal nacelle frame, Rz(-pi/2)
-# constant part of the ball joint 7-8-9: Rx(pi/2) Ry(-pi/2), in numpy (`rot_x` / `rot_y` at import compiled five small
-# programs, 0.15 s of every `import jaxcal`)
-_C, _S = np.cos(np.pi / 2), np.sin(np.pi / 2)
-_BALL = np.array([[1.0, 0.0, 0.0], [0.0, _C, -_S], [0.0, _S, _C]]) @ np.array([[_C, 0.0, -_S], [0.0, 1.0, 0.0], [_S, 0.0, _C]])
+_BALL = principal_rotation(0, np.pi / 2) @ principal_rotation(1, -np.pi / 2)  # constant part of the ball joint 7-8-9
 
 
 def rod_ends(g: DeltaGeometry = NOMINAL) -> np.ndarray:

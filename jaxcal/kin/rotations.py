@@ -19,6 +19,7 @@ differentiable everywhere it is used (safe branches at zero angle).
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 
 def rot_x(angle):
@@ -40,6 +41,16 @@ def rot_z(angle):
     c, s = jnp.cos(angle), jnp.sin(angle)
     o, z = jnp.ones_like(c), jnp.zeros_like(c)
     return jnp.stack([jnp.stack([c, -s, z]), jnp.stack([s, c, z]), jnp.stack([z, z, o])])
+
+
+def principal_rotation(axis: int, angle: float) -> np.ndarray:
+    """Rx, Ry or Rz (axis 0, 1, 2) of one angle as a numpy array, for constants built on the host: no XLA program
+    compiled (`rot_x` and its kin compile one per operation when called from Python)."""
+    c, s = np.cos(angle), np.sin(angle)
+    i, j = [(1, 2), (2, 0), (0, 1)][axis]
+    R = np.eye(3)
+    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
+    return R
 
 
 def pry_to_matrix(pry):

@@ -30,7 +30,6 @@ rigid-motion generators picks (`rigid_coordinates`).
 from __future__ import annotations
 
 import dataclasses
-import functools
 
 import jax.numpy as jnp
 import numpy as np
@@ -38,7 +37,7 @@ import scipy.linalg
 
 from jaxcal.kin.model import Robot
 from jaxcal.kin.pose import Pose
-from jaxcal.kin.rotations import rot_x, rot_y
+from jaxcal.kin.rotations import principal_rotation, rot_x, rot_y
 from jaxcal.robots.build import MCPC_USED, mcpc_robot
 
 N_LEGS = 6
@@ -46,20 +45,15 @@ ROTARY, PRISMATIC, SPHERICAL, AUXILIARY = 0, 1, 2, 3
 LEG_BODIES = ("base", "u1", "u2", "slide", "ball")
 FLOATING = ("float_z", "float_y", "float_x", "float_rz", "float_ry", "float_rx")
 # floating chain at zero joints: (type, world rotation of its frame); every frame at the base origin. The prismatic
-# frames are the ones MCPC allows (a3 = 0): Rx(a1) Ry(a2) of the previous one. Built at the first hexapod, not at
-# import (`rot_x` / `rot_y` compile small programs: 0.15 s of every `import jaxcal`).
-@functools.lru_cache(maxsize=1)
-def _floating_frames():
-    return (
-        (PRISMATIC, np.eye(3)),                                 # slides along z
-        (PRISMATIC, np.asarray(rot_x(-np.pi / 2))),             # along y
-        (PRISMATIC, np.asarray(rot_x(-np.pi / 2) @ rot_y(np.pi / 2))),  # along x
-        (ROTARY, np.eye(3)),                                    # turns about z
-        (ROTARY, np.asarray(rot_x(-np.pi / 2))),                # about y
-        (ROTARY, np.asarray(rot_x(-np.pi / 2) @ rot_y(np.pi / 2))),     # about x
-    )
-
-
+# frames are the ones MCPC allows (a3 = 0): Rx(a1) Ry(a2) of the previous one.
+_FLOATING_FRAMES = (
+    (PRISMATIC, np.eye(3)),                                                       # slides along z
+    (PRISMATIC, principal_rotation(0, -np.pi / 2)),                               # along y
+    (PRISMATIC, principal_rotation(0, -np.pi / 2) @ principal_rotation(1, np.pi / 2)),  # along x
+    (ROTARY, np.eye(3)),                                                          # turns about z
+    (ROTARY, principal_rotation(0, -np.pi / 2)),                                  # about y
+    (ROTARY, principal_rotation(0, -np.pi / 2) @ principal_rotation(1, np.pi / 2)),     # about x
+)
 SINGULAR_RCOND = 1e-6  # smallest / largest singular value of the home leg Jacobian below which the layout is singular
 STROKE_FRACTION = 0.2  # default leg limits: home length -/+ this fraction
 ROTATION_TOL = 1e-9
@@ -208,9 +202,9 @@ def hexapod_robot(base_points, platform_points, *, home_pose, stroke=None, tool=
     home = _as_pose(home_pose, "home_pose")
     lengths = _check_home(a, b, home)
     q_min, q_max = _stroke(stroke, lengths)
-    world = [Pose(R, np.zeros(3)) for _, R in _floating_frames()]
+    world = [Pose(R, np.zeros(3)) for _, R in _FLOATING_FRAMES]
     rows = []
-    for k, (typ, _) in enumerate(_floating_frames()):
+    for k, (typ, _) in enumerate(_FLOATING_FRAMES):
         rows.append(_mcpc_row(world[k - 1] if k else Pose(np.eye(3), np.zeros(3)), world[k], typ) + [k, 0, typ])
     rows.append(_mcpc_row(world[-1], home, AUXILIARY) + [6, 0, AUXILIARY])
     platform = len(rows)

@@ -37,6 +37,7 @@ import numpy as np
 
 from jaxcal.kin import conventions as cv
 from jaxcal.kin.model import Body, Robot
+from jaxcal.kin.rotations import principal_rotation
 from jaxcal.robots.errors import RobotFileError
 from jaxcal.textfile import read_bytes
 
@@ -48,18 +49,10 @@ class URDFError(RobotFileError):
 
 
 # -- homogeneous transforms (numpy, used at the edges only) ---------------------------------------
-def _rot(axis: int, angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    i, j = [(1, 2), (2, 0), (0, 1)][axis]
-    R = np.eye(3)
-    R[i, i], R[i, j], R[j, i], R[j, j] = c, -s, s, c
-    return R
-
-
 def rpy_matrix(rpy) -> np.ndarray:
     """R = Rz(yaw) Ry(pitch) Rx(roll) (URDF origin rpy)."""
     r, p, y = (float(v) for v in rpy)
-    return _rot(2, y) @ _rot(1, p) @ _rot(0, r)
+    return principal_rotation(2, y) @ principal_rotation(1, p) @ principal_rotation(0, r)
 
 
 def matrix_rpy(R) -> np.ndarray:
