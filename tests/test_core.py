@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import rel_err
 
 import jaxcal as jc
 from jaxcal.fit import core
@@ -406,14 +407,25 @@ def test_jacobian_from_the_solver_program_is_jacfwd_and_predicted_is_readings(na
     held_args = problem.solver_arrays(a, np.isin(np.arange(len(a)), dev_cols).astype(float), w, 0.0, np.ones(len(a)))
     r_held, r_full = exe(a, held_args, core.step_limit(0))[5], exe(a, args, core.step_limit(0))[5]
     np.testing.assert_allclose(r_held, r_full, rtol=0, atol=1e-12 * np.max(np.abs(r_full)))
-    # a fit of device entries alone returns no Jacobian (its robot columns are 0; `calibrate` reads every column
-    # again), and reaches the optimum that optimistix's LM (the kinematics differentiated) reaches (measured 1.6e-11 / 5.1e-13)
+    # a fit of device entries alone returns no Jacobian (its robot columns are 0) unless asked for every column (below),
+    # and reaches the optimum that optimistix's LM (the kinematics differentiated) reaches (measured 1.6e-11 / 5.1e-13)
     start = a.copy()
     start[dev_cols[:3]] += 0.02
     mine = core.solve(problem, start, dev_cols, core.Settings())
     theirs = core.solve(problem, start, dev_cols, core.Settings("lm_optimistix", rtol=1e-10, atol=1e-12))
     assert mine.J is None and mine.converged and theirs.converged
     np.testing.assert_allclose(mine.x, theirs.x, rtol=0, atol=1e-8)
+    # asked for every column (`solve`'s full: the start of `calibrate`, whose next fit and base set take them), the same
+    # fit returns J at its end with the robot's columns, equal to `Problem.jacobian` there, and the triangular factor of
+    # [J r] (`triangular`: R^T R equal to [J r]^T [J r]), from a start that has every column too; the same estimate as
+    # without (measured, Stanford arm / four-bar: J 2.7e-16 / 3.1e-16 relative, R^T R 3.2e-16 / 4.3e-16, x 0 / 1.0e-14)
+    full = core.solve(problem, start, dev_cols, core.Settings(), start=problem.residual_and_jacobian(start), factor=True,
+                      full=True)
+    np.testing.assert_allclose(full.x, mine.x, rtol=0, atol=1e-12)
+    J_end = problem.jacobian(full.x)
+    assert np.any(full.J[:, :rb.n_params]) and rel_err(full.J, J_end) < 1e-12
+    A = np.concatenate([J_end, full.r.reshape(-1, 1)], axis=1)
+    assert rel_err(full.factor.T @ full.factor, A.T @ A) < 1e-12
 
 
 @pytest.mark.parametrize("name", ["stanford", "fourbar2d"])

@@ -377,7 +377,8 @@ def scaled_residual_and_jacobian(model, z, args):
     m, a_ref, s = args["mask"], args["a_ref"], args["x_scale"]
     x = jnp.where(m > 0, a_ref + s * z, a_ref)
     if isinstance(model, RobotDevice) and jacobian_mode(model) == "reverse":  # no robot entry estimated: none differentiated
-        r_d, J_a = model.residual_and_jacobian(x, args["q"], args["y"], args["w"], jnp.all(m[:model.robot.n_params] == 0))
+        held = jnp.all(m[:model.robot.n_params] == 0) & (args["full"] <= 0)  # unless every column is asked for
+        r_d, J_a = model.residual_and_jacobian(x, args["q"], args["y"], args["w"], held)
     else:
         r_d, J_a = data_residual_and_jacobian(model, x, args["q"], args["y"], args["cov"], args["w"])
     r_p, J_p = scaled_prior_rows_and_jacobian(z, args)
@@ -787,35 +788,38 @@ class Problem:
         n = self.w.size
         return np.asarray(r)[:n].reshape(self.w.shape), np.asarray(J)[:n], (np.asarray(T) if factor else None)
 
-    def solver_arrays(self, ref, mask, w, mu, scale, start=None, stop: float = 0.0, factor: bool = False) -> dict:
+    def solver_arrays(self, ref, mask, w, mu, scale, start=None, stop: float = 0.0, factor: bool = False,
+                      full: bool = False) -> dict:
         """The solver's arguments: prior ref (P,), estimated mask (P,), data weights w (N, m), bias mu (a number or
         (P,)), unit of z per entry scale (P,) (`stacked_scaled`), with the problem's data and bounds. start: the data
         rows' (r (N, m), J (N*m, P)) at ref with the weights w, which the solve then does not evaluate again
         (`given_start`); without it, placeholders of the same shapes (one program either way). stop: the core LM's
         relative decrease that ends a start (`lm.advance`; 0: none). factor: the program returns the triangular factor
-        of the data rows' [J r] at its end too (`data_factor`)."""
+        of the data rows' [J r] at its end too (`data_factor`). full: J has the robot's columns even where no robot
+        entry is estimated (else they are 0 there, `holds_robot`)."""
         f64 = functools.partial(np.asarray, dtype=np.float64)  # numpy: a compiled call takes them as they are
         n, P = self.w.size, len(self.names)
         r0, J0 = (zeros_placeholder((n,)), zeros_placeholder((n, P))) if start is None else (f64(start[0]).reshape(n), f64(start[1]))
         return dict(a_ref=f64(ref), mask=f64(mask), q=f64(self.q), y=f64(self.y), cov=f64(self.cov), w=f64(w), mu=f64(mu),
                     x_scale=f64(scale), lb=f64(self.lb), ub=f64(self.ub),
-                    start=dict(r=r0, J=J0, given=f64(start is not None)), stop=f64(stop), factor=f64(factor))
+                    start=dict(r=r0, J=J0, given=f64(start is not None)), stop=f64(stop), factor=f64(factor), full=f64(full))
 
-    def args(self, estimated, mu, ref, start=None, ref_residuals=None, stop: float = 0.0, factor: bool = False) -> dict:
+    def args(self, estimated, mu, ref, start=None, ref_residuals=None, stop: float = 0.0, factor: bool = False,
+             full: bool = False) -> dict:
         """Solver arguments: estimate the indices `estimated`, bias mu (a number, or one per entry) toward
         `ref`. The data weights are divided by the RMS weighted residual over the used samples at `ref`: the
         optimum is unchanged and LM starts with an O(1) residual (optimistix's trust region took 4 to 34
         iterations on the same problem depending on that scale); samples of weight 0 do not enter that RMS,
         so a fold (weight mask) and the subset it selects see the same scaled problem. start: the solve's (r, J) at
         its x0 (`residual_and_jacobian`), scaled alike for the solver (`solver_arrays`); ref_residuals: the weighted
-        residuals at ref when the caller has them (else evaluated here); stop, factor: `solver_arrays`'."""
+        residuals at ref when the caller has them (else evaluated here); stop, factor, full: `solver_arrays`'."""
         mask = np.zeros(len(self.names))
         mask[np.asarray(estimated, int)] = 1.0
         r = self.residuals(ref) if ref_residuals is None else np.asarray(ref_residuals)
         used = self.used
         rms = max(np.sqrt(np.sum(r[used] ** 2) / max(r[used].size, 1)) if used.any() else 1.0, 1e-12)
         scaled = None if start is None else (np.asarray(start[0]) / rms, np.asarray(start[1]) / rms)
-        return self.solver_arrays(ref, mask, self.w / rms, mu, self.x_scale, scaled, stop, factor)
+        return self.solver_arrays(ref, mask, self.w / rms, mu, self.x_scale, scaled, stop, factor, full)
 
     def batch_args(self, estimated, mu, refs, weights) -> dict:
         """Arguments of a batch of solves of this problem that differ in their prior refs (B, P) and data
@@ -855,10 +859,11 @@ class Problem:
         most = int(np.max(np.sum(np.atleast_2d(np.asarray(mask)) > 0, axis=-1)))
         return width if width is not None and most <= width else None
 
-    def holds_robot(self, mask) -> bool:
-        """The solver's Jacobian for the estimated mask (P,) leaves the robot's columns 0: no robot entry is estimated
-        and the model is the robot measured by a device (`RobotDevice.residual_and_jacobian`'s robot_held)."""
-        return (isinstance(self.model, RobotDevice) and jacobian_mode(self.model) == "reverse"
+    def holds_robot(self, mask, full: bool = False) -> bool:
+        """The solver's Jacobian for the estimated mask (P,) leaves the robot's columns 0: no robot entry is estimated,
+        the columns are not all asked for (`solver_arrays`' full) and the model is the robot measured by a device
+        (`RobotDevice.residual_and_jacobian`'s robot_held)."""
+        return (isinstance(self.model, RobotDevice) and jacobian_mode(self.model) == "reverse" and not full
                 and not np.any(np.asarray(mask)[:self.robot.n_params] > 0))
 
     def cost(self, a_full) -> float:
@@ -1040,7 +1045,7 @@ def reweighted(read, w_from, w_to) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, ref=None, limit: int | None = None,
-          start=None, ref_residuals=None, stop: float = 0.0, factor: bool = False) -> Solution:
+          start=None, ref_residuals=None, stop: float = 0.0, factor: bool = False, full: bool = False) -> Solution:
     """Minimise the stacked residual over the `estimated` indices from x0, with bias mu toward ref (default x0);
     limit: at most this many iterations (default settings.max_steps; the same compiled program). start: (r, J) at
     x0 (`Problem.residual_and_jacobian`, `Solution.read`; with the robot's columns 0 only for a solve that holds
@@ -1048,7 +1053,9 @@ def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, 
     estimated (the solver holds those at ref). ref_residuals: the problem's weighted residuals (N, m) at ref when the
     caller has them (`Problem.args`' scale; else evaluated there, unless start is at ref). stop: for the core's LM, a
     step predicted to lower the cost by at most this share of it ends the solve, converged (a start: START_STOP).
-    factor: the solution carries the triangular factor of [J r] at x (`Solution.factor`), where it carries J."""
+    factor: the solution carries the triangular factor of [J r] at x (`Solution.factor`), where it carries J.
+    full: the solve's Jacobian has the robot's columns, and the solution carries J, even where no robot entry is
+    estimated (`Problem.holds_robot`); its start, if given, must have them too."""
     x0 = np.asarray(x0, np.float64)
     ref = x0 if ref is None else np.asarray(ref, np.float64)
     mask = np.zeros(len(x0), bool)
@@ -1056,13 +1063,13 @@ def solve(problem: Problem, x0, estimated, settings: Settings, mu: float = 0.0, 
     if start is not None and not np.array_equal(np.where(mask, x0, ref), x0):
         raise ValueError("solve: a start (r, J) is at x0, which must agree with ref on the entries not estimated")
     at_ref = start is not None and np.array_equal(x0, ref)
-    args = problem.args(estimated, mu, ref, start, start[0] if at_ref else ref_residuals, stop, factor)
+    args = problem.args(estimated, mu, ref, start, start[0] if at_ref else ref_residuals, stop, factor, full)
     exe, dt = compiled_model_solver(x0, args, problem.model, settings, width=problem.width_for(args["mask"]))
     cap = settings.max_steps if limit is None else min(limit, settings.max_steps)
     x, ok, steps, cost, history, r_z, J_z, T_z = exe(x0, args, step_limit(cap))
     x = np.where(np.asarray(args["mask"]) > 0, np.asarray(x), np.asarray(ref))
     history = np.asarray(history)
-    read = (None if problem.holds_robot(args["mask"])  # the robot's columns 0
+    read = (None if problem.holds_robot(args["mask"], full)  # the robot's columns 0
             else solver_residual_and_jacobian(problem, r_z, J_z, args, T_z if factor else None))
     r, J, T = (None, None, None) if read is None else read
     return Solution(x, bool(ok), int(steps), float(cost), dt, history[np.isfinite(history)], np.asarray(estimated, int), J, r, T)
@@ -1111,24 +1118,29 @@ def offset_stop(problem: Problem, unknowns: int) -> float:
     return OFFSET_TOL**2 * unknowns / dof if dof > 0 else 0.0
 
 
-def start(problem: Problem, settings: Settings) -> tuple[np.ndarray, Solution | None, bool]:
+def start(problem: Problem, settings: Settings, full: bool = False, factor: bool = False) -> tuple[np.ndarray, Solution | None, bool]:
     """The one start: the device frame registered onto the nominal model (where that lowers the cost), then
     the device parameters the nominal model can determine (`frames_estimated`) fitted with the robot at its
-    prior. Returns (x, frames-only solution, registered)."""
+    prior. Returns (x, frames-only solution, registered).
+    full: the frames-only solution carries J with every column at its end (`solve`'s full), and with factor its
+    triangular factor: the next fit's start and base set without a Jacobian read of their own. Its evaluations
+    then differentiate the kinematics too (Stanford arm, 200 poses: a Jacobian read 0.70 -> 0.91 ms), which one
+    read less repays (1.41 ms with the factor)."""
     x = np.array(problem.a_ref, float)
     reg = registered_frame(problem, x)
     cand = free_device_entries(problem)  # a registered frame is free: not empty then
+    columns = None if full else cand
     # the device's columns at the start, the frames solve's start; at the registered frame its residuals decide too
-    read = None if reg is None else problem.residual_and_jacobian(reg, cand)
+    read = None if reg is None else problem.residual_and_jacobian(reg, columns)
     registered = read is not None and float(np.sum(np.square(read[0]))) < float(np.sum(np.square(problem.prior_residuals)))
     if registered:
         x = reg
     elif cand.size:
-        read = problem.residual_and_jacobian(x, cand)
+        read = problem.residual_and_jacobian(x, columns)
     dev_idx = frames_estimated(problem, x, None if read is None else read[1])
     if not dev_idx.size:
         return x, None, registered
-    sol = solve(problem, x, dev_idx, settings, start=read, stop=START_STOP)
+    sol = solve(problem, x, dev_idx, settings, start=read, stop=START_STOP, factor=factor, full=full)
     return sol.x, sol, registered
 
 
@@ -1319,9 +1331,10 @@ def calibrate(problem: Problem, settings: Settings = Settings(), *, base: bool =
             prior = residuals_in_background(problem)  # (Stanford arm, 200 poses, new data each call: 2.5 ms of 29)
             _, compile_s = evaluator(problem, arrays, settings)
             prior.join()
-        x_frames, frames_sol, registered = start(problem, settings)
-        # the base set's Jacobian with its factor (`choose_estimated`), read at the start's end
-        r0, J0, T0 = problem.read(x_frames, factor=base) if frames_sol is None or frames_sol.J is None else (*frames_sol.read, None)
+        x_frames, frames_sol, registered = start(problem, settings, full=True, factor=base)
+        # the base set's Jacobian with its factor (`choose_estimated`), where the start's solve did not return them
+        r0, J0, T0 = (problem.read(x_frames, factor=base) if frames_sol is None or frames_sol.J is None
+                      else (*frames_sol.read, frames_sol.factor))
         frames_ok = True if frames_sol is None else frames_sol.converged
         compile_s += 0.0 if frames_sol is None else frames_sol.compile_s
         frames_fitted = np.zeros(0, int) if frames_sol is None else frames_sol.estimated
