@@ -88,7 +88,7 @@ def _open_parts(rb, a, theta1):
     th = solve(rb, a, q).theta_free
     f = lambda a, t: tree_frames(rb, a, q, t).p[4, :2]  # noqa: E731
     v = lambda a, t: closure_residual(rb, a, q, t)[:2]  # noqa: E731
-    return [np.asarray(jax.jacfwd(g, k)(a, th)) for g in (f, v) for k in (0, 1)]
+    return [np.asarray(jax.jit(jax.jacfwd(g, k))(a, th)) for g in (f, v) for k in (0, 1)]  # compiled whole
 
 
 def test_chain_rule_eq_2_69(fb):

@@ -44,7 +44,7 @@ def _parts(rb, a, q):
     th = solve(rb, a, q).theta_free
     f = lambda a_, t: tree_frames(rb, a_, q, t).p[rb.tip]  # noqa: E731
     v = lambda a_, t: closure_residual(rb, a_, q, t)  # noqa: E731
-    return [np.asarray(jax.jacfwd(g, k)(a, th)) for g in (f, v) for k in (0, 1)]
+    return [np.asarray(jax.jit(jax.jacfwd(g, k))(a, th)) for g in (f, v) for k in (0, 1)]  # compiled whole
 
 
 @pytest.mark.parametrize("theta1", [0.3, -0.9])

@@ -289,8 +289,8 @@ def test_fit_jacobian_in_reverse_mode_matches_forward_mode_and_central_differenc
     the continuation and some do not close (their penalty pose has no derivative in either mode)."""
     a0 = jc.perturb(rb, 2e-2, seed=2)  # 16 settings: 8 on the fast path, 1 tracked, 7 unclosed
     q = jnp.asarray(jc.random_configurations(rb, N, seed=2))
-    qj = jax.vmap(lambda qi: dl.joint_variables(rb, a0, qi))(q)
-    fast_ok = jax.vmap(functools.partial(dl._fast_single, rb, a0))(qj)[2]
+    qj = jax.jit(jax.vmap(lambda qi: dl.joint_variables(rb, a0, qi)))(q)  # compiled whole, not op by op
+    fast_ok = jax.jit(jax.vmap(functools.partial(dl._fast_single, rb, a0)))(qj)[2]
     ok = np.asarray(dl.solve(rb, a0, q).ok)
     assert int(np.sum(ok & ~np.asarray(fast_ok))) >= 1 and not ok.all(), (fast_ok, ok)  # tracked and unclosed samples
 
@@ -322,14 +322,20 @@ def test_fast_path_closes_at_the_ball_joints_gimbal_lock_on_the_nominal_branch(r
 
     a = jc.perturb(rb, 1e-3, seed=1)
     q = jnp.asarray(jc.random_configurations(rb, 125, seed=2))[35:36]
-    qj = jax.vmap(lambda qi: dl.joint_variables(rb, a, qi))(q)
-    x0, x_fast, fast_ok = jax.vmap(functools.partial(dl._fast_single, rb, a))(qj)[:3]
+    qj = jax.jit(jax.vmap(lambda qi: dl.joint_variables(rb, a, qi)))(q)  # compiled whole, not op by op
+    x0, x_fast, fast_ok = jax.jit(jax.vmap(functools.partial(dl._fast_single, rb, a)))(qj)[:3]
     assert abs(float(x0[0, 3]) - np.pi / 2) < 0.05 and float(jnp.max(jnp.abs(x_fast - x0))) > 0.5  # gimbal lock
     assert bool(fast_ok[0])
     tracked = jax.jit(lambda qi, xi: track(dl._homotopy_residual(rb, a, qi), xi, dl.TRACK_TOL))(qj[0], x0[0])
     assert bool(tracked.reached)
-    st = dl._statics(rb, a)
-    fixed = dl._fixed(rb, st, qj[0])
-    fast, ref = dl._nacelle(rb, st, fixed, x_fast[0]), dl._nacelle(rb, st, fixed, tracked.theta)
+
+    @jax.jit  # compiled whole, not op by op
+    def nacelles_and_tool(qi, x_a, x_b):
+        st = dl._statics(rb, a)
+        fixed = dl._fixed(rb, st, qi)
+        ref = dl._nacelle(rb, st, fixed, x_b)
+        return dl._nacelle(rb, st, fixed, x_a), ref, ref.compose(dl._local(st, dl.TOOL)).p
+
+    fast, ref, tool = nacelles_and_tool(qj[0], x_fast[0], tracked.theta)
     assert float(jnp.max(jnp.abs(fast.p - ref.p))) < 1e-10 and float(jnp.max(jnp.abs(fast.R - ref.R))) < 1e-9
-    np.testing.assert_allclose(jc.forward(rb, a, q).p, ref.compose(dl._local(st, dl.TOOL)).p[None], atol=1e-10)
+    np.testing.assert_allclose(jc.forward(rb, a, q).p, tool[None], atol=1e-10)

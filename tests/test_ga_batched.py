@@ -21,7 +21,7 @@ def _every_kind_robot():
 
 def _per_individual(rb, dev, a0, free_idx, pop, q, y):
     idx = jnp.asarray(free_idx)
-    return jax.vmap(lambda dg: pose_fitness(rb, dev, a0.at[idx].add(dg), q, y, 1.0, 0.7))(pop)
+    return jax.jit(jax.vmap(lambda dg: pose_fitness(rb, dev, a0.at[idx].add(dg), q, y, 1.0, 0.7)))(pop)  # compiled whole
 
 
 @pytest.mark.parametrize("robot", ["mrr1", "every-kind"])

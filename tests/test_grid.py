@@ -137,7 +137,7 @@ def test_core_jacobian_is_jacfwd(robot_name, device_kind, monkeypatch):
     assert core.jacobian_mode(model) == "reverse"  # closed mechanisms too, since their presolve (2026-11-27)
     x = jnp.asarray(_full_point(robot_name, device_kind))
     q = jnp.asarray(configurations(robot_name, 10))
-    y = jax.vmap(dev.read, (0, None))(jc.forward(rb, x[:rb.n_params], q), x[rb.n_params:])
+    y = jax.jit(lambda x: jax.vmap(dev.read, (0, None))(jc.forward(rb, x[:rb.n_params], q), x[rb.n_params:]))(x)  # compiled whole
     y = y + 1e-4 * jnp.sin(jnp.arange(y.size).reshape(y.shape))  # a non-zero residual
     w = jnp.asarray(core.per_sample(residual_weights(dev, 1e-3, 1e-3), 10))
     cov = jnp.zeros((10, 0))

@@ -182,12 +182,16 @@ def test_closed_form_twists(convention, kind):
     """The conventions' closed-form input twists equal the generic ones by forward mode (`Convention.local_twists`)."""
     conv = get_convention(convention)
     rng = np.random.default_rng(0)
+
+    @jax.jit  # compiled whole, not op by op
+    def closed_and_generic(row, qv):
+        frame = conv.local_transform(row, kind, qv)
+        return conv.local_twists(row, kind, qv, frame), Convention.local_twists(conv, row, kind, qv, frame)
+
     for _ in range(5):
         row = jnp.asarray(rng.uniform(-1.5, 1.5, len(conv.row_names)))
         qv = jnp.asarray(rng.uniform(-2, 2, conv.n_inputs(kind)))
-        frame = conv.local_transform(row, kind, qv)
-        closed = conv.local_twists(row, kind, qv, frame)
-        generic = Convention.local_twists(conv, row, kind, qv, frame)
+        closed, generic = closed_and_generic(row, qv)
         assert closed.shape == (len(conv.row_names) + conv.n_inputs(kind), 6)
         np.testing.assert_allclose(closed, generic, rtol=0, atol=1e-14)
 
