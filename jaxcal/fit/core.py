@@ -988,8 +988,8 @@ def _registration(device: Device, P, Y) -> np.ndarray | None:
                         "not metres; give the unit (Dataset.from_csv(..., length_unit=...) or a '# units:' line)")
     from scipy.spatial.transform import Rotation  # on the host: a compiled log_so3 took 0.13 s of the first call
 
-    R, t = rigid_registration(P, Y)
-    return np.concatenate([t, Rotation.from_matrix(R).as_rotvec()])
+    # the rigid fit (`rigid_registration`) has the similarity's rotation, which does not depend on the scale
+    return np.concatenate([P.mean(axis=0) - R @ Y.mean(axis=0), Rotation.from_matrix(R).as_rotvec()])
 
 
 @dataclasses.dataclass(frozen=True)
