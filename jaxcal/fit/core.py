@@ -1130,7 +1130,8 @@ def start(problem: Problem, settings: Settings, full: bool = False, factor: bool
     reg = registered_frame(problem, x)
     cand = free_device_entries(problem)  # a registered frame is free: not empty then
     columns = None if full else cand
-    # the device's columns at the start, the frames solve's start; at the registered frame its residuals decide too
+    # J at the start (the device's columns; every column with full): the frames solve's start; at the registered frame
+    # its residuals decide too
     read = None if reg is None else problem.residual_and_jacobian(reg, columns)
     registered = read is not None and float(np.sum(np.square(read[0]))) < float(np.sum(np.square(problem.prior_residuals)))
     if registered:
