@@ -99,33 +99,39 @@ def test_geometric_newton_jacobian_matches_jacfwd(rb):
     assert float(jnp.max(jnp.abs(J - J_ad))) < 1e-12
 
 
-def test_newton_state_carries_the_residual_and_jacobian_of_its_point(rb):
-    """`dl._newton_step` reuses its trial point's F and J as the next state's: after a full step and after halved
-    ones (the gimbal-lock setting of the test below, from its start) the state's F and J are those at its x, and an
-    inactive step returns the state unchanged. The Newton it drives reaches max |F| <= NEWTON_TOL there."""
+def test_newton_state_carries_the_residual_and_direction_of_its_point(rb):
+    """`dl._newton_turn` evaluates one point a turn and keeps the F and Newton direction of the point it takes: after
+    full steps and after halved ones (the gimbal-lock setting of the test below, from its start) the state's F and
+    d are those at its x, a point is counted only when taken, a rejected trial halves t and keeps x. The Newton it
+    drives reaches max |F| <= NEWTON_TOL there."""
     a = jc.perturb(rb, 1e-3, seed=1)
     q = jnp.asarray(jc.random_configurations(rb, 125, seed=2))[35]
     qj = dl.joint_variables(rb, a, q)
     st = dl._statics(rb, a)
     fixed = dl._fixed(rb, st, qj)
     x0, _ = dl._start(rb, st, qj, fixed)
-    s = dl._newton_start(rb, st, fixed, x0)
-    step = jax.jit(lambda s, active: dl._newton_step(rb, st, fixed, s, active))
-    halved = False
-    for _ in range(4):
-        new = step(s, True)
-        halved |= bool(jnp.sum(new.F**2) < jnp.sum(s.F**2)) and not np.allclose(new.x, s.x - dl.solve_small(s.J, s.F))
+    turn = jax.jit(lambda s: dl._newton_turn(rb, st, fixed, s))
+    s = turn(dl._newton_start(x0))
+    np.testing.assert_array_equal(s.x, x0)
+    halvings = taken = 0
+    while bool(dl._newton_more(s)):
+        new = turn(s)
+        if bool(new.halving):  # the trial did not lower |F|: x kept, t halved, nothing counted
+            halvings += 1
+            np.testing.assert_array_equal(new.x, s.x)
+            assert float(new.t) == 0.5 * float(s.t) and int(new.evals) == int(s.evals)
+        else:
+            taken += 1
+            np.testing.assert_allclose(new.x, s.x - s.t * s.d, rtol=0, atol=1e-15)
+            assert float(new.t) == 1.0 and int(new.evals) == int(s.evals) + 1
         F, J = dl._residual_and_jacobian(rb, st, fixed, new.x)
         np.testing.assert_allclose(new.F, F, rtol=0, atol=1e-15)
-        np.testing.assert_allclose(new.J, J, rtol=1e-13, atol=1e-15)
-        assert int(new.evals) == int(s.evals) + 1
+        np.testing.assert_allclose(new.d, dl.solve_small(J, F), rtol=1e-12, atol=1e-15)
         s = new
-    assert halved, "no step was cut: the start is inside Newton's basin"
-    same = step(s, False)
-    for got, want in zip(same, s):
-        np.testing.assert_array_equal(got, want)
+    assert halvings > 0 and taken > 0, "no step was cut: the start is inside Newton's basin"
     x, err, evals = jax.jit(lambda x0: dl._newton(rb, st, fixed, x0))(x0)
     assert float(err) <= dl.NEWTON_TOL and int(evals) <= dl.NEWTON_STEPS, (err, evals)
+    np.testing.assert_array_equal(x, s.x)
 
 
 def test_turned_nacelle_is_the_chain_at_the_turned_joints_to_first_order(rb):

@@ -310,51 +310,54 @@ def _residual_and_jacobian(robot, st, fixed, x):
 
 
 class NewtonState(NamedTuple):
-    """Damped Newton on the sphere system at the point x: F(x), dF/dx and the points evaluated so far (x included)."""
+    """Damped Newton on the sphere system (`_newton`): the current point x with F(x), the Newton direction
+    d = J(x)^-1 F(x) and |F(x)|^2, the step t along -d that the next turn evaluates, the points taken so far (x0
+    included), and whether the next turn is the first (it evaluates x0) or halves a step that did not lower |F|."""
 
     x: jnp.ndarray
     F: jnp.ndarray
-    J: jnp.ndarray
+    d: jnp.ndarray
+    f: jnp.ndarray
+    t: jnp.ndarray
     evals: jnp.ndarray
+    first: jnp.ndarray
+    halving: jnp.ndarray
 
 
-def _newton_start(robot, st, fixed, x0) -> NewtonState:
-    return NewtonState(x0, *_residual_and_jacobian(robot, st, fixed, x0), jnp.asarray(1))
+def _newton_start(x0) -> NewtonState:
+    """The state whose first turn evaluates x0."""
+    inf = jnp.full((), jnp.inf, x0.dtype)
+    return NewtonState(x0, jnp.full(len(ROD1), jnp.inf, x0.dtype), jnp.zeros_like(x0), inf, jnp.ones((), x0.dtype),
+                       jnp.asarray(1), jnp.asarray(True), jnp.asarray(False))
 
 
 def _newton_more(s: NewtonState):
-    """Whether Newton goes on from s: max |F| above NEWTON_TOL (a non-finite F stops it) and fewer than NEWTON_STEPS
-    points evaluated."""
-    return (jnp.max(jnp.abs(s.F)) > NEWTON_TOL) & (s.evals < NEWTON_STEPS)
+    """Whether Newton goes on from s: its first turn, a step being halved, or max |F| above NEWTON_TOL (a non-finite F
+    stops it) with fewer than NEWTON_STEPS points taken."""
+    return s.first | s.halving | ((jnp.max(jnp.abs(s.F)) > NEWTON_TOL) & (s.evals < NEWTON_STEPS))
 
 
-def _newton_step(robot, st, fixed, s: NewtonState, active=True) -> NewtonState:
-    """One damped step from s: x - t J^-1 F with t = 1 halved while |F| does not fall (at most NEWTON_HALVINGS
-    times). The trial point's F and J are the next state's, so a full step costs one evaluation. active: False
-    returns s and skips the halvings (a lane of a batch that has stopped: under vmap its halvings would run for the
-    others)."""
-    d = solve_small(s.J, s.F)
-    f0 = jnp.sum(s.F**2)
-
-    def trial(t):
-        return (t, *_residual_and_jacobian(robot, st, fixed, s.x - t * d))
-
-    def worse(c):
-        t, F, _ = c
-        return active & (jnp.sum(F**2) >= f0) & (t > 0.5**NEWTON_HALVINGS)
-
-    t, F, J = jax.lax.while_loop(worse, lambda c: trial(0.5 * c[0]), varying_with(s.x, trial(jnp.asarray(1.0, s.x.dtype))))
-    return jax.tree_util.tree_map(lambda n, o: jnp.where(active, n, o), NewtonState(s.x - t * d, F, J, s.evals + 1), s)
+def _newton_turn(robot, st, fixed, s: NewtonState) -> NewtonState:
+    """One evaluation: F and J at the trial point x - t d (x0 on the first turn). The point is taken where it lowers
+    |F| or t has been halved NEWTON_HALVINGS times (or F is not finite there: Newton then stops); else t is halved.
+    One evaluation site in the loop, not one before it, one for a full step and one in a loop of halvings: the fast
+    path compiles in 0.86-1.02 s instead of 1.12-1.21 s (125 settings)."""
+    p = jnp.where(s.first, s.x, s.x - s.t * s.d)
+    F, J = _residual_and_jacobian(robot, st, fixed, p)
+    f = jnp.sum(F**2)
+    take = s.first | ~(f >= s.f) | (s.t <= 0.5**NEWTON_HALVINGS)
+    keep = lambda new, old: jnp.where(take, new, old)  # noqa: E731
+    return NewtonState(keep(p, s.x), keep(F, s.F), keep(solve_small(J, F), s.d), keep(f, s.f),
+                       jnp.where(take, 1.0, 0.5 * s.t), s.evals + (take & ~s.first), jnp.asarray(False), ~take)
 
 
 def _newton(robot, st, fixed, x0):
     """Damped Newton on the square 5 x 5 sphere system until max |F| <= NEWTON_TOL (at most NEWTON_STEPS points
-    evaluated): (x, max |F| at x, points evaluated). Each step is x - t J^-1 F with t = 1 halved until |F| falls (at
-    most NEWTON_HALVINGS times, `_newton_step`): full steps near a root, so quadratic convergence there, and no
+    taken): (x, max |F| at x, points taken). Each step is x - t J^-1 F with t = 1 halved until |F| falls (at most
+    NEWTON_HALVINGS times, `_newton_turn`): full steps near a root, so quadratic convergence there, and no
     divergence from a start outside Newton's basin (near the ball joint's gimbal lock plain Newton left 8 steps at
     |x - x0| ~ 3.8e3 rad where the damped one closed in 9)."""
-    s = jax.lax.while_loop(_newton_more, lambda s: _newton_step(robot, st, fixed, s, _newton_more(s)),
-                           varying_with(x0, _newton_start(robot, st, fixed, x0)))
+    s = jax.lax.while_loop(_newton_more, lambda s: _newton_turn(robot, st, fixed, s), varying_with(x0, _newton_start(x0)))
     return s.x, jnp.max(jnp.abs(s.F)), s.evals
 
 
