@@ -311,13 +311,43 @@ def test_fit_jacobian_in_reverse_mode_matches_forward_mode_and_central_differenc
     np.testing.assert_allclose(r, r_fwd, rtol=0, atol=1e-15)
     assert rel_err(J, J_fwd) < 1e-12, rel_err(J, J_fwd)  # measured 4e-19
 
+    # the fits' own Jacobian, from the tool's parameter twists (`dl.tool_and_twists`): the same first-order derivative
+    r_tw, J_tw = jax.jit(lambda a: model.residual_and_jacobian(a, q, y, w))(a_full)
+    np.testing.assert_allclose(r_tw, r, rtol=0, atol=1e-15)
+    assert rel_err(J_tw, J) < 1e-12, rel_err(J_tw, J)  # measured 3.4e-15
+
     free = np.flatnonzero(rb.free_mask)
     rows = np.repeat(ok, 3)
     res = jax.jit(lambda x: model.residuals(a_full.at[free].set(x), q, y, cov, w).reshape(-1))
     fd = central_fd(lambda x: np.asarray(res(x))[rows], np.asarray(a_full[free]), h=1e-6)
-    err = rel_err(np.asarray(J)[rows][:, free], fd)
-    assert err < 1e-6, err  # measured 5.6e-10
-    assert np.all(np.asarray(J)[~rows][:, : rb.n_params] == 0.0)  # the device's columns move the penalty reading
+    for got in (J, J_tw):
+        err = rel_err(np.asarray(got)[rows][:, free], fd)
+        assert err < 1e-6, err  # measured 5.6e-10
+        assert np.all(np.asarray(got)[~rows][:, : rb.n_params] == 0.0)  # the device's columns move the penalty reading
+
+
+def test_fit_jacobian_from_twists_carries_gains_and_holds_the_robot(rb):
+    """The fits' Jacobian from the tool's parameter twists (`dl.tool_and_twists`) where the actuator joints move with a
+    parameter: j7.d1 (rod 1's length) made the gain of actuators 1 and 3 as well, so its column sums the rod's twist
+    and the gains' (seed 001 eq 4), against reverse mode through `dl.forward_presolved`. With the robot held (the
+    start's frames-only fit) the robot's columns are 0 and the device's unchanged."""
+    i = rb.index("j7.d1")
+    geared = rb.replace(gains=(i, -1, i))
+    model = core.RobotDevice(geared, jc.measure.devices.as_device("position"))
+    a_full = jnp.concatenate([jc.perturb(geared, 1e-3, seed=2), model.device.nominal])
+    q = jnp.asarray(jc.random_configurations(geared, N, seed=2))
+    y = jnp.asarray(core.predicted(geared, model.device, a_full, q)) + 1e-4
+    cov, w = jnp.zeros((N, 0)), jnp.ones((N, 3))
+    r, J = jax.jit(lambda a: core.data_residual_and_jacobian(model, a, q, y, cov, w))(a_full)
+    fit_rows = jax.jit(lambda a, held: model.residual_and_jacobian(a, q, y, w, held))
+    r_tw, J_tw = fit_rows(a_full, False)
+    np.testing.assert_allclose(r_tw, r, rtol=0, atol=1e-15)
+    assert rel_err(J_tw, J) < 1e-10, rel_err(J_tw, J)  # measured 3.1e-13
+    assert rel_err(J_tw[:, i], J[:, i]) < 1e-10 and np.abs(np.asarray(J[:, i])).max() > 0.1  # measured 4.9e-13
+    r_held, J_held = fit_rows(a_full, True)
+    np.testing.assert_array_equal(r_held, r_tw)
+    assert np.all(np.asarray(J_held)[:, : geared.n_params] == 0.0)
+    np.testing.assert_array_equal(J_held[:, geared.n_params:], J_tw[:, geared.n_params:])
 
 
 def test_fast_path_closes_at_the_ball_joints_gimbal_lock_on_the_nominal_branch(rb):

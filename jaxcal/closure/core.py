@@ -112,6 +112,9 @@ class Closure:
     # faster for every closed mechanism measured (8-16 %), but a closure whose Newton solve differentiates in forward
     # mode (this generic one) compiles 0.4-3.4 s longer without YNNPACK; the Delta's fast path, 0.1 s.
     xla_dots: ClassVar[bool] = False
+    # whether a fit's Jacobian comes from the tool's parameter twists, `tool_and_twists(robot, a, q, pre, held)` -> (tool,
+    # Xi (P, 6)) of one sample (the Delta's); else reverse mode through `forward_presolved`
+    twists: ClassVar[bool] = False
 
     def presolve(self, robot: Robot, a, q):
         """`presolve` (robot: the serving robot, as in a fit's problem)."""

@@ -44,7 +44,7 @@ from jaxcal import exported
 from jaxcal.closure.core import Closure, ClosureSolution, euler_parameters, failed_pose, forward_closed, tree_frames
 from jaxcal.closure.core import solve as solve_generic
 from jaxcal.closure.track import CLOSED, OTHER_MODE, UNCLOSED, Tracked, track
-from jaxcal.kin.model import joint_variables
+from jaxcal.kin.model import joint_variables, take
 from jaxcal.kin.pose import Pose
 from jaxcal.kin.rotations import principal_rotation
 from jaxcal.linalg import solve_small
@@ -225,19 +225,32 @@ def _local(st, k, qk=0.0):
     return Pose(R, v0 * row[..., 3:4] + v1 * row[..., 4:5] + row[..., 5:6] * v2)
 
 
+def _composed(f: Pose, g: Pose) -> Pose:
+    """f o g (`Pose.compose`, broadcast over leading axes) with the 3 x 3 products written as products summed: XLA:CPU
+    fuses those with their neighbours, where it compiles each dot as a kernel of its own (the Delta's fit program:
+    285 -> 196 kernels compiled apart, 163k -> 138k lines of LLVM IR)."""
+    R = jnp.sum(f.R[..., :, :, None] * g.R[..., None, :, :], axis=-2)
+    return Pose(R, _applied(f, g.p))
+
+
+def _applied(f: Pose, x):
+    """Points x (..., 3) of frame f in its parent's frame, f.p + f.R x (`Pose.apply`, as a product summed)."""
+    return f.p + jnp.sum(f.R * x[..., None, :], axis=-1)
+
+
 def _fixed(robot, st, q):
     """Everything that does not depend on the free joints: actuated arm frames, the elbow frame
     of rod 1 at zero joint angle, and for rods 2-6 the elbow frames R_pre at zero angle, the
     universal centres c_k and the rod lengths L_k."""
-    arms = _local(st, 1).compose(_local(st, np.array(ACTUATORS), q))  # (3,) frames
+    arms = _composed(_local(st, 1), _local(st, np.array(ACTUATORS), q))  # (3,) frames
     rod_arm = np.array([ACTUATORS.index(robot.bodies[r[0] - 1].parent + 1) for r in RODS])
     parents = Pose(arms.R[rod_arm], arms.p[rod_arm])
-    f1 = parents.compose(_local(st, np.array([r[0] for r in RODS])))
-    f2 = f1.compose(_local(st, np.array([r[1] for r in RODS])))
+    f1 = _composed(parents, _local(st, np.array([r[0] for r in RODS])))
+    f2 = _composed(f1, _local(st, np.array([r[1] for r in RODS])))
     ends = st["rows"][np.array([r[2] for r in RODS]) - 1]
     i1 = ACTUATORS.index(robot.bodies[ROD1[0] - 1].parent + 1)
     arm1 = Pose(arms.R[i1], arms.p[i1])
-    return {"arm1": arm1, "elbow1": arm1.compose(_local(st, ROD1[0])), "pre": f1.R, "centres": f2.p,
+    return {"arm1": arm1, "elbow1": _composed(arm1, _local(st, ROD1[0])), "pre": f1.R, "centres": f2.p,
             "lengths": jnp.hypot(ends[:, 3], ends[:, 4])}
 
 
@@ -247,7 +260,7 @@ def _chain(st, f, bodies, x):
     locs = _local(st, np.array(bodies), jnp.stack(x))
     out = []
     for i in range(len(bodies)):
-        f = f.compose(Pose(locs.R[i], locs.p[i]))
+        f = _composed(f, Pose(locs.R[i], locs.p[i]))
         out.append(f)
     return out
 
@@ -258,7 +271,7 @@ def _nacelle(robot, st, fixed, x):
 
 
 def _closure_points(robot, st, nacelle):
-    return nacelle.apply(_local(st, np.array(CLOSURES)).p)
+    return _applied(nacelle, _local(st, np.array(CLOSURES)).p)
 
 
 def _sphere_residual(robot, st, fixed, x):
@@ -283,7 +296,7 @@ def _start(robot, st, q, fixed):
     theta = q + jnp.stack([_row(st, k)[2] for k in ACTUATORS])
     P, ok = direct(theta, g)
     o9 = P + rod_ends(g)[0]
-    f6 = fixed["elbow1"].compose(_local(st, ROD1[1]))
+    f6 = _composed(fixed["elbow1"], _local(st, ROD1[1]))
     u = o9 - f6.p
     q5, q6 = _universal_angles(fixed["elbow1"].R, u / jnp.linalg.norm(u))
     f6 = _nacelle(robot, st, fixed, (q5, q6))  # frame 6 with the solved universal angles
@@ -515,7 +528,139 @@ def _finish_single(robot, a, q, x_star, on_branch, elsewhere):
     nacelle = _turned(at_star, _chain(st_sg, fixed_sg["arm1"], ROD1, x_star), jnp.where(ok, dx, 0.0))
     rods = _rod_angles(robot, st, fixed, nacelle)
     status = jnp.where(ok, CLOSED, jnp.where(elsewhere, OTHER_MODE, UNCLOSED))
-    return x, rods, nacelle.compose(_local(st, TOOL)), ok, err, status
+    return x, rods, _composed(nacelle, _local(st, TOOL)), ok, err, status
+
+
+# -- the fits' Jacobian from parameter twists -------------------------------------------------------------------
+def _local_twists(rows, q):
+    """The local frames (Pose of (B, 3, 3)/(B, 3)) of bodies with parameter rows `rows` (B, 6) and joint values q (B,),
+    and the parent-frame twists (omega, v) (B, 6 row entries, 6) of their rows (`jaxcal.kin.twists`), in closed form:
+    with T = (V Rz(a3 + q), V d), V = Rx(a1) Ry(a2) = [v0 v1 v2], a1 turns about e1, a2 about v1 and a3 about v2
+    through the origin of T (v = -omega x p), and d1, d2, d3 translate along v0, v1, v2. The joint value's twist is
+    a3's."""
+    c1, s1, c2, s2 = jnp.cos(rows[:, 0]), jnp.sin(rows[:, 0]), jnp.cos(rows[:, 1]), jnp.sin(rows[:, 1])
+    zero, one = jnp.zeros_like(c1), jnp.ones_like(c1)
+    v0 = jnp.stack([c2, s1 * s2, -c1 * s2], axis=-1)
+    v1 = jnp.stack([zero, c1, s1], axis=-1)
+    v2 = jnp.stack([s2, -s1 * c2, c1 * c2], axis=-1)
+    c, s = jnp.cos(rows[:, 2] + q)[:, None], jnp.sin(rows[:, 2] + q)[:, None]
+    p = v0 * rows[:, 3:4] + v1 * rows[:, 4:5] + v2 * rows[:, 5:6]
+    frames = Pose(jnp.stack([v0 * c + v1 * s, v1 * c - v0 * s, v2], axis=-1), p)
+    e1, nil = jnp.stack([one, zero, zero], axis=-1), jnp.zeros_like(v0)
+    omega = jnp.stack([e1, v1, v2, nil, nil, nil], axis=1)
+    v = jnp.stack([nil, nil, -jnp.cross(v2, p), v0, v1, v2], axis=1)
+    return frames, jnp.concatenate([omega, v], axis=-1)
+
+
+@functools.lru_cache(maxsize=8)
+def _twist_tables(robot):
+    """Static tables of `tool_and_twists`: for each parameter i its (body, row entry) slot k * 6 + f in the (30 * 6)
+    twists (-1: none), and whether its body lies on the path of the tool, of each nacelle closure point (5) and of
+    each rod's universal centre (5); for each of those the same per actuator; one-hot (5, 2, P) of the parameters of
+    the rods' end rows d1, d2 (lengths L_k = hypot(d1, d2))."""
+    slot = [-1] * robot.n_params
+    for k, body in enumerate(robot.bodies):
+        for f, i in enumerate(body.rows):
+            if i >= 0:
+                slot[i] = k * 6 + f
+
+    def path(b):  # body numbers from b up to the base
+        out = set()
+        while b >= 1:
+            out.add(b)
+            b = robot.bodies[b - 1].parent + 1
+        return out
+
+    tips = [TOOL] + list(CLOSURES) + [rod[1] for rod in RODS]
+    on = np.zeros((len(tips), robot.n_params))
+    for t, tip in enumerate(tips):
+        bodies = path(tip)
+        for k, body in enumerate(robot.bodies, start=1):
+            for i in body.rows:
+                if i >= 0 and k in bodies:
+                    on[t, i] = 1.0
+    arms = np.array([[float(k in path(tip)) for k in ACTUATORS] for tip in tips])
+    ends = np.zeros((len(RODS), 2, robot.n_params))  # one-hot: the parameter of each rod end's d1, d2
+    for k, rod in enumerate(RODS):
+        for f, i in enumerate(robot.bodies[rod[2] - 1].rows[3:5]):
+            if i >= 0:
+                ends[k, f, i] = 1.0
+    return tuple(slot), on, arms, ends
+
+
+def tool_and_twists(robot, a, q, pre, held=False):
+    """(tool, Xi) of one sample from its presolved closure pre = (x_star, on_branch, elsewhere) (`presolve`): the
+    tool pose (`forward_presolved`'s to round-off; a sample that does not close is moved by `failed_pose`) and the
+    world twist (omega, v) of the tool per robot parameter, Xi (P, 6) (0 where the sample does not close: its
+    penalty pose has no derivative; held, traced: 0, not computed). One pass over the 30 bodies' frames gives both
+    (seed 004 eq 2.65 by parameter twists, `jaxcal.kin.twists`); a fit's Jacobian is then built as an open chain's
+    (`jaxcal.fit.core.open_residual_and_jacobian`), with no reverse pass through the closure. Against reverse mode
+    through `forward_presolved` (Delta, 125 positions, both programs' LLVM IR 197k -> 139k lines, 350 -> 200 kernels
+    compiled apart): the first `identify` 10.4-10.5 -> 7.6-7.7 s on a slow hour of this 2-core CPU, the same run
+    time (docs/benchmarks.md, twenty-seventh session).
+
+    A parameter of body b moves every frame below b by the world twist xi of its row entry (`_local_twists` carried
+    to the world by b's parent frame). The sphere conditions F_k = |o_k - c_k| - L_k (`_sphere_residual`: nacelle
+    point o_k, universal centre c_k at zero universal angles as `_fixed`, n_k = (o_k - c_k) / |o_k - c_k|) move by
+    n_k . (do_k - dc_k) - dL_k, a point p by omega x p + v for each xi on its path; rod 1's joint x_m turns them by
+    its a3 twist zeta_m, so J = dF/dx = [n_k . (zeta_m at o_k)] (`_residual_and_jacobian`'s geometric Jacobian). The
+    tool moves by the xi on its path (base, arm 1, rod 1, nacelle, tool) and by dx/da = -J^-1 dF/da (the implicit
+    function theorem, eq 2.65). The tool itself is the nacelle at x_star turned by the Newton step dx = -J^-1 F
+    (`_turned`), as in `_finish_single`. A gain moves the actuator joints (dq/da by forward mode), each turning its
+    arm by its a3 twist. Static indices throughout (slices, one-hot products): under vmap a scatter or gather at
+    traced positions is a loop over the batch."""
+    x_star, on_branch = jax.lax.stop_gradient(pre[0]), pre[1]
+    st = _statics(robot, a)
+    qj = joint_variables(robot, a, q)
+    joints = jnp.concatenate([jnp.zeros(ACTUATORS[0] - 1, a.dtype), qj, x_star, jnp.zeros(len(robot.bodies) - ROD1[-1], a.dtype)])
+    locs, xi = _local_twists(st["rows"], joints)
+    base = Pose(jnp.eye(3, dtype=a.dtype), jnp.zeros(3, a.dtype))
+    worlds = {0: base}
+    for k, body in enumerate(robot.bodies, start=1):  # parents before children (the table's order)
+        worlds[k] = _composed(worlds[body.parent + 1], Pose(locs.R[k - 1], locs.p[k - 1]))
+    parents = [worlds[body.parent + 1] for body in robot.bodies]
+    R_par, p_par = jnp.stack([f.R for f in parents]), jnp.stack([f.p for f in parents])
+    omega = jnp.sum(R_par[:, None] * xi[:, :, None, :3], axis=-1)
+    v = jnp.sum(R_par[:, None] * xi[:, :, None, 3:], axis=-1) + jnp.cross(p_par[:, None, :], omega)
+    world = jnp.concatenate([omega, v], axis=-1)  # (bodies, 6 row entries, 6)
+
+    def moved(twists, points):  # twists (K, ..., 6) at points (K, 3): the points' velocities (K, ..., 3)
+        return jnp.cross(twists[..., :3], points[:, None, :]) + twists[..., 3:]
+
+    o = jnp.stack([worlds[k].p for k in CLOSURES])
+    c = jnp.stack([worlds[rod[1]].p for rod in RODS])
+    ends = jnp.stack([st["rows"][rod[2] - 1, 3:5] for rod in RODS])  # (5, 2): d1, d2 of the rod ends
+    lengths = jnp.linalg.norm(ends, axis=-1)
+    dist = jnp.linalg.norm(o - c, axis=-1)
+    F, n = dist - lengths, (o - c) / dist[:, None]
+    zeta = world[ROD1[0] - 1:ROD1[-1], 2]  # (5, 6): rod 1's joints' a3 twists
+    J = jnp.sum(n[:, None, :] * moved(jnp.broadcast_to(zeta, (len(CLOSURES),) + zeta.shape), o), axis=-1)
+    J_inv = solve_small(J, jnp.eye(len(ROD1), dtype=a.dtype))
+    err = jnp.linalg.norm(F)
+    ok = on_branch & (jnp.where(jnp.isfinite(err), err, jnp.inf) <= CLOSURE_TOL)
+    dx = jnp.where(ok, -J_inv @ F, 0.0)
+    nacelle = _turned(worlds[NACELLE], [worlds[k] for k in ROD1], dx)
+    tool = failed_pose(_composed(nacelle, Pose(locs.R[TOOL - 1], locs.p[TOOL - 1])), ok)
+
+    def twists():
+        slot, on, arms, end_params = _twist_tables(robot)
+        per_param = take(world.reshape(-1, 6), slot)  # (P, 6): each parameter's twist (its body's paths: `on`)
+        # F_k moves by n_k . (omega x p + v) = (p x n_k, n_k) . (omega, v) at p = o_k and c_k: each path's twists
+        # against one wrench, not its points' velocities
+        W = jnp.concatenate([jnp.concatenate([jnp.cross(o, n), n], axis=-1),
+                             -jnp.concatenate([jnp.cross(c, n), n], axis=-1)])  # (10, 6): at o_k, then at c_k
+        dF = on[1:] * (W @ per_param.T)  # (10, P)
+        Xi = on[0][:, None] * per_param
+        if robot.gains is not None:  # joint values move with the parameters (seed 001 eq 4), each turning its arm
+            dq = jax.jacfwd(lambda b: joint_variables(robot, b, q))(a)  # (3, P)
+            arm = world[ACTUATORS[0] - 1:ACTUATORS[-1], 2]  # (3, 6): the actuator joints' twists
+            dF = dF + jnp.einsum("tj,jp,tj->tp", arms[1:], dq, W @ arm.T)
+            Xi = Xi + jnp.einsum("j,jp,jk->pk", arms[0], dq, arm)
+        dL = jnp.sum((ends / lengths[:, None])[:, :, None] * end_params, axis=1)
+        dF = dF[:len(CLOSURES)] + dF[len(CLOSURES):] - dL
+        return jnp.where(ok, Xi - (J_inv @ dF).T @ zeta, 0.0)
+
+    return tool, jax.lax.cond(held, lambda: jnp.zeros((robot.n_params, 6), a.dtype), twists)
 
 
 def _flat(q):
@@ -629,6 +774,7 @@ class DeltaClosure(Closure):
 
     geometry: DeltaGeometry = NOMINAL
     transposable = True  # its JVP is built from reverse-mode Jacobians
+    twists = True  # a fit's Jacobian from the tool's parameter twists (`tool_and_twists`)
     xla_dots = True  # its Newton uses the geometric Jacobian: few dots to compile (`jaxcal.fit.core.xla_dots`)
 
     def serving(self, robot, a, free_mask=None):
@@ -658,6 +804,10 @@ class DeltaClosure(Closure):
     def presolve(self, robot, a, q):
         """`presolve` (robot: the serving robot, as in a fit's problem)."""
         return presolve(robot, a, q)
+
+    def tool_and_twists(self, robot, a, q, pre, held=False):
+        """`tool_and_twists` (robot: the serving robot, as in a fit's problem)."""
+        return tool_and_twists(robot, a, q, pre, held)
 
     def forward_presolved(self, robot, a, q, pre) -> Pose:
         """`forward_presolved` (robot: the serving robot, as in a fit's problem)."""

@@ -186,10 +186,11 @@ def residuals(robot: Robot, device: Device, a_full, q, y, w):
     return misfit(device, readings(robot, device, a_full, q), y, w)
 
 
-def open_residual_and_jacobian(robot: Robot, device: Device, x, q, y, w, robot_held=False):
-    """(r, J) of an open chain's data rows (`RobotDevice.residual_and_jacobian`) from the parameters' twists, sample
-    by sample: the tool frames and the world twist Xi of every robot parameter come from one forward pass
-    (`jaxcal.kin.twists.tools_and_twists`); the reading's m vector-Jacobian products give dr/dd and dr/dT, which
+def open_residual_and_jacobian(robot: Robot, device: Device, x, q, y, w, robot_held=False, pre=None):
+    """(r, J) of the data rows (`RobotDevice.residual_and_jacobian`) from the parameters' twists, sample by sample: the
+    tool frames and the world twist Xi of every robot parameter come from one forward pass (an open chain:
+    `jaxcal.kin.twists.tools_and_twists`; a closure with `Closure.twists`, from its closure presolved for the batch,
+    pre: `Closure.tool_and_twists`); the reading's m vector-Jacobian products give dr/dd and dr/dT, which
     `twists.wrench` turns into the derivative along each unit twist of the tool (m, 6), and dr/da = that times Xi.
     No reverse pass runs through the chain. Against m reverse passes (Stanford arm, 200 readings, this 2-core CPU):
     the first identify 3.2 -> 2.3 s (positions) and 4.0 -> 3.0 s (poses), mostly the solver's XLA compile; a pose
@@ -199,8 +200,11 @@ def open_residual_and_jacobian(robot: Robot, device: Device, x, q, y, w, robot_h
     a, d = x[:nr], x[nr:]
 
     def one(sample):
-        qi, yi, wi = sample
-        tools, Xi = twists.tools_and_twists(robot, a, qi, robot_held)
+        qi, yi, wi, pi = sample
+        if pre is None:
+            tools, Xi = twists.tools_and_twists(robot, a, qi, robot_held)
+        else:
+            tools, Xi = robot.closure.tool_and_twists(robot, a, qi, pi, robot_held)
 
         def reading(T, dd):
             T1 = jax.tree_util.tree_map(lambda v: v[None], T)
@@ -214,7 +218,7 @@ def open_residual_and_jacobian(robot: Robot, device: Device, x, q, y, w, robot_h
         J_a = jnp.einsum("mtk,tpk->mp", along.reshape(r.shape[0], -1, 6), Xi.reshape(-1, nr, 6))
         return r, jnp.concatenate([J_a, J_d], axis=1)
 
-    r, J = jax.lax.map(one, (q, y, w), batch_size=JACOBIAN_CHUNK)
+    r, J = jax.lax.map(one, (q, y, w, pre), batch_size=JACOBIAN_CHUNK)
     return r.reshape(-1), J.reshape(-1, x.shape[0])
 
 
@@ -257,16 +261,19 @@ class RobotDevice:
     def residual_and_jacobian(self, x, q, y, w, robot_held=False):
         """(r, J): the data rows (N*m,) at x and their Jacobian (N*m, P), sample by sample in chunks of
         JACOBIAN_CHUNK. robot_held (traced): the robot's columns are 0, what a fit of device parameters alone needs
-        (the start's frames-only fit). An open chain: `open_residual_and_jacobian`. A closed mechanism: reverse mode
-        in two stages, its tool pose T from the closure solved for the batch first (`presolve`), then the reading's
-        m vector-Jacobian products give dr/dd and the cotangents of T, which the kinematics' pullback takes to dr/da
+        (the start's frames-only fit). An open chain: `open_residual_and_jacobian`. A closed mechanism: its closure
+        solved for the batch first (`presolve`), then, where the closure gives the tool's parameter twists
+        (`Closure.twists`: the Delta), `open_residual_and_jacobian` from those; else reverse mode, the reading's m
+        vector-Jacobian products giving dr/dd and the cotangents of T, which the kinematics' pullback takes to dr/da
         (not run when robot_held: Stanford arm, 200 positions, one evaluation ~3x cheaper)."""
         if self.robot.closure is None:
             return open_residual_and_jacobian(self.robot, self.device, x, q, y, w, robot_held)
-        nr = self.robot.n_params
-        a, d = x[:nr], x[nr:]
         pre = self.presolve(x, q)
         closure = self.robot.closure
+        if closure.twists:
+            return open_residual_and_jacobian(self.robot, self.device, x, q, y, w, robot_held, pre)
+        nr = self.robot.n_params
+        a, d = x[:nr], x[nr:]
 
         def one(sample):
             qi, yi, wi, pi = sample
