@@ -326,28 +326,33 @@ def test_fit_jacobian_in_reverse_mode_matches_forward_mode_and_central_differenc
         assert np.all(np.asarray(got)[~rows][:, : rb.n_params] == 0.0)  # the device's columns move the penalty reading
 
 
-def test_fit_jacobian_from_twists_carries_gains_and_holds_the_robot(rb):
-    """The fits' Jacobian from the tool's parameter twists (`dl.tool_and_twists`) where the actuator joints move with a
-    parameter: j7.d1 (rod 1's length) made the gain of actuators 1 and 3 as well, so its column sums the rod's twist
-    and the gains' (seed 001 eq 4), against reverse mode through `dl.forward_presolved`. With the robot held (the
-    start's frames-only fit) the robot's columns are 0 and the device's unchanged."""
+def test_tool_twists_carry_gains_and_hold_the_robot(rb):
+    """The tool's parameter twists (`dl.tool_and_twists`, the fits' Jacobian) where the actuator joints move with a
+    parameter: j7.d1 (rod 1's length) made the gain of actuators 1 and 3 as well, so its twist sums the rod's and the
+    gains' (seed 001 eq 4). The tool's derivative they give, d p = omega x p + v and d R = [omega]_x R, against forward
+    mode through the implicit step of `dl.forward_presolved` at the same presolved closure; held, the twists are 0."""
     i = rb.index("j7.d1")
     geared = rb.replace(gains=(i, -1, i))
-    model = core.RobotDevice(geared, jc.measure.devices.as_device("position"))
-    a_full = jnp.concatenate([jc.perturb(geared, 1e-3, seed=2), model.device.nominal])
+    a = jc.perturb(geared, 1e-3, seed=2)
     q = jnp.asarray(jc.random_configurations(geared, N, seed=2))
-    y = jnp.asarray(core.predicted(geared, model.device, a_full, q)) + 1e-4
-    cov, w = jnp.zeros((N, 0)), jnp.ones((N, 3))
-    r, J = jax.jit(lambda a: core.data_residual_and_jacobian(model, a, q, y, cov, w))(a_full)
-    fit_rows = jax.jit(lambda a, held: model.residual_and_jacobian(a, q, y, w, held))
-    r_tw, J_tw = fit_rows(a_full, False)
-    np.testing.assert_allclose(r_tw, r, rtol=0, atol=1e-15)
-    assert rel_err(J_tw, J) < 1e-10, rel_err(J_tw, J)  # measured 3.1e-13
-    assert rel_err(J_tw[:, i], J[:, i]) < 1e-10 and np.abs(np.asarray(J[:, i])).max() > 0.1  # measured 4.9e-13
-    r_held, J_held = fit_rows(a_full, True)
-    np.testing.assert_array_equal(r_held, r_tw)
-    assert np.all(np.asarray(J_held)[:, : geared.n_params] == 0.0)
-    np.testing.assert_array_equal(J_held[:, geared.n_params:], J_tw[:, geared.n_params:])
+    pre = dl.presolve(geared, a, q)
+    assert np.all(np.asarray(pre[1])), "every sample on the fast path"
+    twists = jax.jit(jax.vmap(lambda qi, x, b, e, held: dl.tool_and_twists(geared, a, qi, (x, b, e), held),
+                              (0, 0, 0, 0, None)))
+    tool, Xi = twists(q, *pre, False)
+
+    def pose_vector(a_, qi, pi):
+        T = dl.forward_presolved(geared, a_, qi[None], jax.tree_util.tree_map(lambda v: v[None], pi))
+        return jnp.concatenate([T.R[0].ravel(), T.p[0]])
+
+    want = jax.jit(jax.vmap(lambda qi, x, b, e: jax.jacfwd(pose_vector)(a, qi, (x, b, e))))(q, *pre)  # (N, 12, P)
+    omega, v = Xi[..., :3], Xi[..., 3:]
+    dR = jnp.cross(omega[:, :, None, :], jnp.swapaxes(tool.R, -1, -2)[:, None], axis=-1)  # column by column
+    got = jnp.concatenate([jnp.swapaxes(dR, -1, -2).reshape(N, -1, 9), jnp.cross(omega, tool.p[:, None]) + v], axis=-1)
+    got = jnp.swapaxes(got, 1, 2)
+    assert rel_err(got, want) < 1e-10, rel_err(got, want)  # measured 3.5e-13 (x_star to the Newton tolerance)
+    assert rel_err(got[..., i], want[..., i]) < 1e-10 and float(jnp.abs(want[..., i]).max()) > 0.1  # 3.7e-13
+    np.testing.assert_array_equal(twists(q, *pre, True)[1], 0.0)
 
 
 def test_fast_path_closes_at_the_ball_joints_gimbal_lock_on_the_nominal_branch(rb):
