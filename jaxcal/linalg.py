@@ -25,10 +25,13 @@ def solve_small(A, b):
         raise ValueError(f"solve_small: A must be square and b must have {n} rows, got A {A.shape}, b {b.shape}")
     vector = b.ndim == 1
     M = jnp.concatenate([A, b[:, None] if vector else b], axis=1)
+    rows = jnp.arange(n)[:, None]
     for k in range(n - 1):
         p = k + jnp.argmax(jnp.abs(M[k:, k]))
-        row_k, row_p = M[k], M[p]
-        M = M.at[p].set(row_k).at[k].set(row_p)
+        # the swap as selects on the row index, not a gather and a scatter at p: under vmap each is a loop over the
+        # batch at a batched position (the Delta's fit program: 24 -> 8 loops, LLVM IR 139k -> 124k lines)
+        row_k, row_p = M[k], jnp.sum(jnp.where(rows == p, M, 0.0), axis=0)
+        M = jnp.where(rows == k, row_p, jnp.where(rows == p, row_k, M))
         factors = M[k + 1:, k] / M[k, k]
         M = M.at[k + 1:].add(-factors[:, None] * M[k])
     U, c = M[:, :n], M[:, n:]
