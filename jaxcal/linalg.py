@@ -29,7 +29,7 @@ def solve_small(A, b):
     for k in range(n - 1):
         p = k + jnp.argmax(jnp.abs(M[k:, k]))
         # the swap as selects on the row index, not a gather and a scatter at p: under vmap each is a loop over the
-        # batch at a batched position (the Delta's fit program: 24 -> 8 loops, LLVM IR 139k -> 124k lines)
+        # batch at a batched position (the Delta's fit program: 24 -> 8 loops, LLVM IR 139k -> 123k lines)
         row_k, row_p = M[k], jnp.sum(jnp.where(rows == p, M, 0.0), axis=0)
         M = jnp.where(rows == k, row_p, jnp.where(rows == p, row_k, M))
         factors = M[k + 1:, k] / M[k, k]
