@@ -214,7 +214,12 @@ def _local(st, k, qk=0.0):
 
     Built for those bodies alone from their rows: a fit's reverse pass, sample by sample, then carries cotangents of
     their six parameters, not of every body's V and t (Delta, 125 positions: residuals and Jacobian 4.9 -> 4.3 ms)."""
-    row = st["rows"][np.asarray(k) - 1]
+    return _frame_parts(st["rows"][np.asarray(k) - 1], qk)[0]
+
+
+def _frame_parts(row, qk):
+    """(T, (v0, v1, v2)): the MCPC frame of `_local` for parameter row(s) (..., 6) and joint value(s) qk, and the
+    columns of V = Rx(a1) Ry(a2) (the axes `_local_twists` reads its twists from)."""
     c1, s1, c2, s2 = jnp.cos(row[..., 0]), jnp.sin(row[..., 0]), jnp.cos(row[..., 1]), jnp.sin(row[..., 1])
     v0 = jnp.stack([c2, s1 * s2, -c1 * s2], axis=-1)  # the columns of V = Rx(a1) Ry(a2)
     v1 = jnp.stack([jnp.zeros_like(c1), c1, s1], axis=-1)
@@ -222,7 +227,7 @@ def _local(st, k, qk=0.0):
     angle = row[..., 2] + qk
     c, s = jnp.cos(angle)[..., None], jnp.sin(angle)[..., None]
     R = jnp.stack([v0 * c + v1 * s, v1 * c - v0 * s, v2], axis=-1)
-    return Pose(R, v0 * row[..., 3:4] + v1 * row[..., 4:5] + row[..., 5:6] * v2)
+    return Pose(R, v0 * row[..., 3:4] + v1 * row[..., 4:5] + row[..., 5:6] * v2), (v0, v1, v2)
 
 
 def _composed(f: Pose, g: Pose) -> Pose:
@@ -538,17 +543,11 @@ def _local_twists(rows, q):
     with T = (V Rz(a3 + q), V d), V = Rx(a1) Ry(a2) = [v0 v1 v2], a1 turns about e1, a2 about v1 and a3 about v2
     through the origin of T (v = -omega x p), and d1, d2, d3 translate along v0, v1, v2. The joint value's twist is
     a3's."""
-    c1, s1, c2, s2 = jnp.cos(rows[:, 0]), jnp.sin(rows[:, 0]), jnp.cos(rows[:, 1]), jnp.sin(rows[:, 1])
-    zero, one = jnp.zeros_like(c1), jnp.ones_like(c1)
-    v0 = jnp.stack([c2, s1 * s2, -c1 * s2], axis=-1)
-    v1 = jnp.stack([zero, c1, s1], axis=-1)
-    v2 = jnp.stack([s2, -s1 * c2, c1 * c2], axis=-1)
-    c, s = jnp.cos(rows[:, 2] + q)[:, None], jnp.sin(rows[:, 2] + q)[:, None]
-    p = v0 * rows[:, 3:4] + v1 * rows[:, 4:5] + v2 * rows[:, 5:6]
-    frames = Pose(jnp.stack([v0 * c + v1 * s, v1 * c - v0 * s, v2], axis=-1), p)
-    e1, nil = jnp.stack([one, zero, zero], axis=-1), jnp.zeros_like(v0)
+    frames, (v0, v1, v2) = _frame_parts(rows, q)
+    nil = jnp.zeros_like(v0)
+    e1 = nil.at[:, 0].set(1.0)
     omega = jnp.stack([e1, v1, v2, nil, nil, nil], axis=1)
-    v = jnp.stack([nil, nil, -jnp.cross(v2, p), v0, v1, v2], axis=1)
+    v = jnp.stack([nil, nil, -jnp.cross(v2, frames.p), v0, v1, v2], axis=1)
     return frames, jnp.concatenate([omega, v], axis=-1)
 
 
