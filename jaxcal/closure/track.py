@@ -35,7 +35,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxcal.linalg import solve_small
+from jaxcal.linalg import solve_spd
 from jaxcal.loops import varying_with
 
 CLOSED, UNCLOSED, OTHER_MODE = 0, 1, 2
@@ -114,7 +114,7 @@ def _settle(fn_t, t, x, damped, tol, loose, active, max_steps: int = 100, path: 
             v, V = value_and_jacobian(lambda z: fn_t(z, t), s.p)
             dvdt = s.dvdt
         norm_p = jnp.linalg.norm(v)
-        delta = solve_small(V.T @ V + jnp.where(damped, s.mu, 0.0) * eye, V.T @ v)
+        delta = solve_spd(V.T @ V + jnp.where(damped, s.mu, 0.0) * eye, V.T @ v)
         # the damped Newton: at th, |v| there (first turn) and the trial point; at the trial, kept or not
         better = s.at_trial & jnp.isfinite(norm_p) & (norm_p < s.norm)
         th = jnp.where(better, s.p, s.th)
@@ -178,7 +178,7 @@ def track(fn_t, x_init, tol, active=True, loose=None) -> Tracked:
 
     def body(s):
         y, V, dvdt, t, dt, k, n, ok0, first = s
-        d = -solve_small(V.T @ V, V.T @ dvdt)  # the tangent at (y, t), eq 2.65
+        d = -solve_spd(V.T @ V, V.T @ dvdt)  # the tangent at (y, t), eq 2.65
         t1 = jnp.where(first, zero, jnp.minimum(t + dt, 1.0))
         start = jnp.where(first, x_init, y + (t1 - t) * jnp.where(_finite(d), d, 0.0))
         r = _settle(fn_t, t1, start, first, jnp.where(first, 100.0 * tol, tol), loose, active)
