@@ -359,15 +359,13 @@ def test_fast_path_closes_at_the_ball_joints_gimbal_lock_on_the_nominal_branch(r
     """A setting where rod 1's ball joint is at its gimbal lock (q8 ~ pi/2): the damped Newton closes it and the
     fast path keeps it, although q7 and q9 end > 0.5 rad from the start (the same nacelle, other angles: the branch
     test is on the nacelle frame). Its tool pose is the one the continuation from the nominal robot reaches."""
-    from jaxcal.closure.track import track
-
     a = jc.perturb(rb, 1e-3, seed=1)
     q = jnp.asarray(jc.random_configurations(rb, 125, seed=2))[35:36]
     qj = jax.jit(jax.vmap(lambda qi: dl.joint_variables(rb, a, qi)))(q)  # compiled whole, not op by op
     x0, x_fast, fast_ok = jax.jit(jax.vmap(functools.partial(dl._fast_single, rb, a)))(qj)[:3]
     assert abs(float(x0[0, 3]) - np.pi / 2) < 0.05 and float(jnp.max(jnp.abs(x_fast - x0))) > 0.5  # gimbal lock
     assert bool(fast_ok[0])
-    tracked = jax.jit(lambda qi, xi: track(dl._homotopy_residual(rb, a, qi), xi, dl.TRACK_TOL))(qj[0], x0[0])
+    tracked = jax.jit(lambda qi, xi: dl._track(rb, a, qi, xi))(qj[0], x0[0])
     assert bool(tracked.reached)
 
     @jax.jit  # compiled whole, not op by op

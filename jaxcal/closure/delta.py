@@ -379,16 +379,24 @@ def _newton(robot, st, fixed, x0):
     return s.x, jnp.max(jnp.abs(s.F)), s.evals
 
 
-def _homotopy_residual(robot, a, q):
-    """F(x, t) of the Delta whose parameters move from the nominal (t = 0) to a (t = 1) at actuator
-    joints q: the path `track` follows from the nominal branch (seed 004 §2.4, made robust)."""
-    a_ref = jnp.asarray(robot.nominal_np)
+def _homotopy_residual(robot, x, st_fixed):
+    """F(x) of `_sphere_residual` for the pair (st, fixed) of `_homotopy_path`."""
+    return _sphere_residual(robot, *st_fixed, x)
 
-    def fn(x, t):
-        st = _statics(robot, a_ref + t * (a - a_ref))
-        return _sphere_residual(robot, st, _fixed(robot, st, q), x)
 
-    return fn
+def _homotopy_path(robot, a, q):
+    """t -> (st, fixed) along the path `track` follows from the nominal branch (seed 004 §2.4, made robust): what
+    the sphere conditions read (`_sphere_residual`: rod 1's rows, the arm frame rod 1 hangs from, the universal
+    centres and rod lengths of rods 2-6), moved linearly from the nominal robot's (t = 0) to the robot's with
+    parameters a (t = 1), both at actuator joints q. Linear in t, so its derivative is the difference of the ends
+    and `track` differentiates `_sphere_residual` alone."""
+    ends = [(st, _fixed(robot, st, q)) for st in (_statics(robot, jnp.asarray(robot.nominal_np)), _statics(robot, a))]
+    return lambda t: jax.tree_util.tree_map(lambda u, v: u + t * (v - u), *ends)
+
+
+def _track(robot, a, q, x0, active=True) -> Tracked:
+    """The continuation of one setting q from the nominal robot's closed configuration near x0 (`track`)."""
+    return track(functools.partial(_homotopy_residual, robot), x0, TRACK_TOL, active=active, at=_homotopy_path(robot, a, q))
 
 
 def _rod_angles(robot, st, fixed, nacelle):
@@ -459,8 +467,7 @@ def free_joints(robot, a, qj):
     a, qj = jax.lax.stop_gradient(a), jax.lax.stop_gradient(qj)
     x0, x_fast, fast_ok, closes, valid, k_fast = jax.vmap(functools.partial(_fast_single, robot, a))(qj)
     need = valid & ~fast_ok
-    tracked = tracked_samples(lambda qi, xi, act: track(_homotopy_residual(robot, a, qi), xi, TRACK_TOL, active=act),
-                              qj, x0, need)
+    tracked = tracked_samples(lambda qi, xi, act: _track(robot, a, qi, xi, act), qj, x0, need)
     x = jnp.where(fast_ok[:, None], x_fast, tracked.theta)
     finite = jnp.all(jnp.isfinite(x), axis=-1, keepdims=True)
     on_branch = fast_ok | tracked.reached

@@ -9,7 +9,8 @@ start) to the sample (t = 1),
 
     a(t) = a_ref + t (a - a_ref),   q(t) = q_ref + t (q - q_ref),
 
-and the solution is followed along the path: an Euler predictor along the tangent
+(the Delta moves what its sphere conditions read, `jaxcal.closure.delta._homotopy_path`: `track`'s `at`), and the
+solution is followed along the path: an Euler predictor along the tangent
 d theta / dt = -(V^T V)^-1 V^T dv/dt (V = dv/dtheta, the implicit function theorem of eq 2.65),
 then a Gauss-Newton corrector. A step is accepted only when the corrector contracts (each Newton
 correction at most CONTRACTION times the previous one: the iterates stay in the basin of the root
@@ -64,6 +65,17 @@ def value_and_jacobian(fn, x):
     return v, V
 
 
+def path_jacobian(fn, x, c, dc):
+    """(v, dv/dx, dv/dt) of fn(x, c) with c moving along dc = dc/dt, by forward mode in one pass: the pushforwards of
+    (e_i, 0) and (0, dc), vmapped over the n + 1 directions, share the primal evaluation."""
+    n = x.shape[0]
+    ex = jnp.concatenate([jnp.eye(n, dtype=x.dtype), jnp.zeros((1, n), x.dtype)])
+    ec = jax.tree_util.tree_map(lambda d: jnp.concatenate([jnp.zeros((n, *jnp.shape(d)), jnp.result_type(d)),
+                                                           jnp.asarray(d)[None]]), dc)
+    v, Vt = jax.vmap(lambda u, w: jax.jvp(fn, (x, c), (u, w)), out_axes=(None, -1))(ex, ec)
+    return v, Vt[:, :-1], Vt[:, -1]
+
+
 def _finite(x):
     return jnp.all(jnp.isfinite(x))
 
@@ -90,16 +102,16 @@ class _Settle(NamedTuple):
     dvdt: jnp.ndarray
 
 
-def _settle(fn_t, t, x, damped, tol, loose, active, max_steps: int = 100, path: bool = True) -> _Settle:
-    """From x, at the fixed path parameter t, `damped_newton`'s iterations (damped true; tolerance tol, at most
-    max_steps) or `corrector`'s (tol, loose), in one loop that evaluates v and [V, dv/dt] of fn_t(., t) once a turn
-    (a damped iteration takes two turns, at th and at its trial point): the residual's Jacobian is traced and
-    compiled once for both. t is fixed during the loop, so what fn_t computes from t alone stays out of it. V and
-    dvdt are kept at the accepted point (th; the corrector's last evaluated point), for the path's next tangent;
-    path (static) False: dvdt is not evaluated (kept 0), for a residual without a path."""
+def _settle(fn, c, dc, x, damped, tol, loose, active, max_steps: int = 100) -> _Settle:
+    """From x, at a fixed point c of the path (`track`'s at(t)), `damped_newton`'s iterations (damped true; tolerance
+    tol, at most max_steps) or `corrector`'s (tol, loose), in one loop that evaluates v and [V, dv/dt] of fn(., c)
+    once a turn (a damped iteration takes two turns, at th and at its trial point): the residual's Jacobian is traced
+    and compiled once for both. dv/dt is the derivative along dc = dc/dt (`path_jacobian`); dc None: not evaluated
+    (kept 0), for a residual without a path. V and dvdt are kept at the accepted point (th; the corrector's last
+    evaluated point), for the path's next tangent."""
     eye = jnp.eye(x.shape[0], dtype=x.dtype)
     inf = jnp.asarray(jnp.inf, x.dtype)
-    m = jax.eval_shape(fn_t, x, t).shape[0]
+    m = jax.eval_shape(fn, x, c).shape[0]
 
     def cond(s: _Settle):
         damping = s.at_trial | ((s.norm > 0.01 * tol) & (s.kd < max_steps) & (s.mu < 1e12))
@@ -107,12 +119,10 @@ def _settle(fn_t, t, x, damped, tol, loose, active, max_steps: int = 100, path: 
         return active & jnp.where(damped, damping, correcting)
 
     def body(s: _Settle) -> _Settle:
-        if path:
-            v, Vt = value_and_jacobian(lambda zt: fn_t(zt[:-1], zt[-1]), jnp.append(s.p, t))
-            V, dvdt = Vt[:, :-1], Vt[:, -1]
+        if dc is None:
+            (v, V), dvdt = value_and_jacobian(lambda z: fn(z, c), s.p), s.dvdt
         else:
-            v, V = value_and_jacobian(lambda z: fn_t(z, t), s.p)
-            dvdt = s.dvdt
+            v, V, dvdt = path_jacobian(fn, s.p, c, dc)
         norm_p = jnp.linalg.norm(v)
         delta = solve_spd(V.T @ V + jnp.where(damped, s.mu, 0.0) * eye, V.T @ v)
         # the damped Newton: at th, |v| there (first turn) and the trial point; at the trial, kept or not
@@ -149,17 +159,17 @@ def corrector(fn, x, tol, active=True, loose=None):
     a step below round-off at |v| <= loose, default tol) while every step contracted
     (|dx_k| <= CONTRACTION |dx_(k-1)|, or below round-off) and the iterate stayed within MAX_JUMP of
     x. Stops after CORRECTOR_STEPS steps."""
-    r = _settle(lambda z, _: fn(z), jnp.zeros((), x.dtype), x, False, tol, tol if loose is None else loose, active,
-                path=False)
+    r = _settle(lambda z, _: fn(z), (), None, x, False, tol, tol if loose is None else loose, active)
     return r.cy, r.good & ((r.cnorm <= tol) | r.still), r.kc
 
 
-def track(fn_t, x_init, tol, active=True, loose=None) -> Tracked:
-    """Follow the root of fn_t(theta, t) from t = 0 to t = 1 (see the module docstring).
+def track(fn, x_init, tol, active=True, loose=None, at=None) -> Tracked:
+    """Follow the root of fn(theta, at(t)) from t = 0 to t = 1 (see the module docstring).
 
     x_init: a start in the basin of the reference root at t = 0, polished there first by the damped Newton of
     `damped_newton` (tolerance 100 tol, at most 100 iterations). tol, loose: as in `corrector`. active: False skips
-    all work.
+    all work. at: what the residual reads of the path parameter (a pytree; default t itself), computed with its
+    derivative in t once per path step, outside the corrector's loop (`path_jacobian` then differentiates fn alone).
 
     The polish is the path loop's first turn, and it and the corrector of every later turn are one loop at the
     turn's fixed t, `_settle`, whose Jacobian [V, dv/dt] at the point it ends on gives the next tangent: the
@@ -171,6 +181,7 @@ def track(fn_t, x_init, tol, active=True, loose=None) -> Tracked:
     every status and iteration count equal (docs/benchmarks.md, nineteenth session)."""
     loose = tol if loose is None else loose
     zero = jnp.zeros((), x_init.dtype)
+    at = (lambda t: t) if at is None else at
 
     def cond(s):
         _, _, _, t, dt, k, _, ok0, first = s
@@ -181,7 +192,8 @@ def track(fn_t, x_init, tol, active=True, loose=None) -> Tracked:
         d = -solve_spd(V.T @ V, V.T @ dvdt)  # the tangent at (y, t), eq 2.65
         t1 = jnp.where(first, zero, jnp.minimum(t + dt, 1.0))
         start = jnp.where(first, x_init, y + (t1 - t) * jnp.where(_finite(d), d, 0.0))
-        r = _settle(fn_t, t1, start, first, jnp.where(first, 100.0 * tol, tol), loose, active)
+        c, dc = jax.jvp(at, (t1,), (jnp.ones_like(t1),))
+        r = _settle(fn, c, dc, start, first, jnp.where(first, 100.0 * tol, tol), loose, active)
         # first turn: the path starts where the polish closes to loose
         x = jnp.where(_finite(r.th), r.th, x_init)
         polished = (x, r.V, r.dvdt, zero, jnp.ones_like(zero), k, r.kd, active & _finite(x) & (r.norm <= loose),
@@ -193,7 +205,7 @@ def track(fn_t, x_init, tol, active=True, loose=None) -> Tracked:
                    keep(jnp.minimum(2.0 * dt, 1.0), 0.5 * dt), k + 1, n + r.kc, ok0, jnp.asarray(False))
         return jax.tree_util.tree_map(lambda a, b: jnp.where(first, a, b), polished, stepped)
 
-    m = jax.eval_shape(fn_t, x_init, zero).shape[0]
+    m = jax.eval_shape(lambda x, t: fn(x, at(t)), x_init, zero).shape[0]
     init = (x_init, jnp.zeros((m, x_init.shape[0]), x_init.dtype), jnp.zeros(m, x_init.dtype), zero, jnp.ones_like(zero),
             jnp.asarray(0), jnp.asarray(0), jnp.asarray(False), jnp.asarray(True))
     x, _, _, t, _, _, n, ok0, _ = jax.lax.while_loop(cond, body, varying_with(x_init, init))
@@ -205,7 +217,7 @@ def damped_newton(fn, start, tol, max_steps: int = 100, active=True):
 
     Each step solves (V^T V + mu I) d = -V^T v; a step that lowers |v| is kept and mu shrinks tenfold,
     otherwise mu grows tenfold. Stops at |v| <= tol / 100, after max_steps, or when mu exceeds 1e12."""
-    r = _settle(lambda z, _: fn(z), jnp.zeros((), start.dtype), start, True, tol, tol, active, max_steps, path=False)
+    r = _settle(lambda z, _: fn(z), (), None, start, True, tol, tol, active, max_steps)
     return jnp.where(_finite(r.th), r.th, start), r.kd
 
 
