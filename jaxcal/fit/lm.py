@@ -148,6 +148,7 @@ class LMState(NamedTuple):
     last: jnp.ndarray  # the last accepted step (0 before the first)
     bend: jnp.ndarray  # r(z) - r(z_prev) - J(z_prev) last: half the second derivative of r along last
     lam0: jnp.ndarray  # the damping at the start (`initial_damping` there)
+    cost: jnp.ndarray  # |r|^2 at z, kept from the step that computed it: each sum over the rows is a few kernels of its own
 
 
 def initial_damping(J):
@@ -162,7 +163,7 @@ def init(fn: Callable, z0, args, jac: Callable | None = None) -> LMState:
     r0, J0 = (jac or functools.partial(residual_and_jacobian, fn))(z0, args)
     lam0 = initial_damping(J0)
     return LMState(z0, r0, J0, lam0, jnp.asarray(2.0, z0.dtype), jnp.asarray(0), jnp.asarray(False),
-                   jnp.zeros_like(z0), jnp.zeros_like(r0), lam0)
+                   jnp.zeros_like(z0), jnp.zeros_like(r0), lam0, r0 @ r0)
 
 
 def step(fn: Callable, s: LMState, args, rtol: float, atol: float, jac: Callable | None = None) -> LMState:
@@ -211,7 +212,7 @@ def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first, fre
     v, step_taken = jax.lax.cond(first, lambda _: (jnp.zeros_like(last), jnp.zeros_like(last)), proposal, None)
     delta = spread(step_taken)
     z_new = s.z + delta
-    cost = s.r @ s.r
+    cost = s.cost
     predicted = cost - jnp.sum((s.r + J @ v) ** 2)
     # the linear model predicts no decrease beyond round-off: z is optimal to working precision. A step of an
     # ill-conditioned fit there moves the residuals by round-off amplified ~cond(J), which can exceed the residual
@@ -248,7 +249,7 @@ def advance(rj: Callable, s: LMState, args, rtol: float, atol: float, first, fre
     return LMState(keep(z_new, s.z), keep(r_new, s.r), keep(J_new, s.J), lam,
                    jnp.where(accepted, 2.0, 2.0 * s.nu), s.steps + jnp.where(first, 0, 1), ~first & accepted & final,
                    jnp.where(moved, delta, s.last), jnp.where(moved, r_new - s.r - J @ step_taken, s.bend),
-                   jnp.where(first, lam, s.lam0))
+                   jnp.where(first, lam, s.lam0), keep(cost_new, s.cost))
 
 
 def starting_with(rj: Callable, start, first) -> Callable:
@@ -276,18 +277,19 @@ def least_squares(fn: Callable, z0, args, *, max_steps: int, rtol: float, atol: 
     r_shape, J_shape = jax.eval_shape(rj, z0, args)
     blank = LMState(z0, jnp.zeros(r_shape.shape, r_shape.dtype), jnp.zeros(J_shape.shape, J_shape.dtype),
                     jnp.asarray(1.0, z0.dtype), jnp.asarray(2.0, z0.dtype), jnp.asarray(0), jnp.asarray(False),
-                    jnp.zeros_like(z0), jnp.zeros(r_shape.shape, r_shape.dtype), jnp.asarray(1.0, z0.dtype))
+                    jnp.zeros_like(z0), jnp.zeros(r_shape.shape, r_shape.dtype), jnp.asarray(1.0, z0.dtype),
+                    jnp.asarray(0.0, z0.dtype))
 
     def body(carry):
         s, hist, first = carry
         s = advance(rj if start is None else starting_with(rj, start, first), s, args, rtol, atol, first, free, width,
                     data_rows, stop)
-        return s, hist.at[s.steps].set(s.r @ s.r), jnp.asarray(False)
+        return s, hist.at[s.steps].set(s.cost), jnp.asarray(False)
 
     s, hist, _ = jax.lax.while_loop(lambda c: c[2] | (~c[0].converged & (c[0].steps < cap) & (c[0].lam < LAM_MAX)),
                                     body, varying_with(z0, (blank, jnp.full(max_steps + 1, jnp.nan, z0.dtype),
                                                             jnp.asarray(True))))
-    return LMResult(s.z, s.converged, s.steps, s.r @ s.r, hist, s.r, s.J)
+    return LMResult(s.z, s.converged, s.steps, s.cost, hist, s.r, s.J)
 
 
 @dataclasses.dataclass(frozen=True)
