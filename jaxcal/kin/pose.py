@@ -19,9 +19,8 @@ class Pose(NamedTuple):
         return Pose(jnp.eye(3), jnp.zeros(3))
 
     def compose(self, other: "Pose") -> "Pose":
-        """self ∘ other: other expressed in self's frame. The 3 x 3 products are written as products summed: XLA:CPU
-        fuses those with their neighbours, where it compiles each batched dot as a kernel of its own."""
-        return Pose(jnp.sum(self.R[..., :, :, None] * other.R[..., None, :, :], axis=-2), self.apply(other.p))
+        """self ∘ other: other expressed in self's frame."""
+        return Pose(self.R @ other.R, self.p + (self.R @ other.p[..., None])[..., 0])
 
     def inverse(self) -> "Pose":
         Rt = jnp.swapaxes(self.R, -1, -2)
@@ -29,7 +28,7 @@ class Pose(NamedTuple):
 
     def apply(self, x):
         """Map a point x (..., 3) from this frame to the parent frame."""
-        return self.p + jnp.sum(self.R * x[..., None, :], axis=-1)
+        return self.p + (self.R @ x[..., None])[..., 0]
 
     def matrix(self):
         """Homogeneous 4x4 matrix (..., 4, 4)."""
