@@ -196,17 +196,20 @@ def test_few_readings_default_estimates_every_parameter_under_a_chosen_bias():
     assert 0.5 < fit.sigma < 2.0, fit.sigma  # effective degrees of freedom under the bias (noise stated right)
 
 
-def test_bias_path_stops_once_the_held_out_score_has_risen_for_patience_stages(monkeypatch):
-    """`fit.bias.heldout_scores` runs the path stage by stage over the folds and stops after PATIENCE (2) rises past
-    the least score: with pooled held-out scores 5, 3, 4, 6 (and 1, 0.5 in the two stages after) it runs four
-    stages on each of the four folds, leaves the last two NaN, and `choose_bias` ends at the second stage. With the
-    patience of the whole path every stage runs and the last wins: the rule assumes a path whose held-out error
-    falls, then rises, which is what fitting the noise along weak directions gives."""
+def test_bias_path_stops_once_the_held_out_score_has_risen_past_its_least_by_more_than_the_share(monkeypatch):
+    """`fit.bias.heldout_scores` runs the path stage by stage over the folds and stops at the first PATIENCE (1) stage
+    whose score exceeds the least by more than the share RISE: with pooled held-out scores 5, 3, 3 (1 + RISE / 2),
+    4 (and 1, 0.5 in the two stages after) the third stage's rise is not counted, the fourth's is, so it runs four
+    stages on each of the four folds, leaves the last two NaN, and `choose_bias` ends at the second stage. Counting
+    every rise (rise 0), it stops after the third stage; with the patience of the whole path every stage runs and the
+    last wins: the rule assumes a path whose held-out error falls, then rises, which is what fitting the noise along
+    weak directions gives."""
     from types import SimpleNamespace
 
     from jaxcal.fit import bias
 
-    curve = dict(zip(bias.BIAS_PATH, (5.0, 3.0, 4.0, 6.0, 1.0, 0.5)))
+    assert bias.PATIENCE == 1 and 0 < bias.RISE < 0.1
+    curve = dict(zip(bias.BIAS_PATH, (5.0, 3.0, 3.0 * (1 + bias.RISE / 2), 4.0, 1.0, 0.5)))
     calls = []
 
     def solve(problem, x, estimated, settings, mu, ref, start=None, ref_residuals=None):
@@ -228,13 +231,17 @@ def test_bias_path_stops_once_the_held_out_score_has_risen_for_patience_stages(m
     monkeypatch.setattr(bias.core, "solve", solve)
     cal = SimpleNamespace(x_frames=None, estimated=np.arange(3), r0=None, J0=None)
     schedule, scores, record = bias.choose_bias(Problem(np.ones((8, 1))), cal, None)
-    np.testing.assert_allclose(scores[:4], [5.0, 3.0, 4.0, 6.0])
+    np.testing.assert_allclose(scores[:4], [5.0, 3.0, 3.0 * (1 + bias.RISE / 2), 4.0])
     assert np.all(np.isnan(scores[4:])) and len(calls) == 4 * bias.BIAS_FOLDS
     assert schedule == list(bias.BIAS_PATH[:2])
     # the stage at mu = 1e-3 "stops unconverged" on every fold: counted, for identify's health warning
     assert record == {"bias_fold_solves": 4 * bias.BIAS_FOLDS, "bias_fold_solves_unconverged": bias.BIAS_FOLDS}
+    every_rise, _, _ = bias.heldout_scores(Problem(np.ones((8, 1))), cal, None, rise=0.0)
+    assert np.isfinite(every_rise[:3]).all() and np.isnan(every_rise[3:]).all()
     full, _, _ = bias.heldout_scores(Problem(np.ones((8, 1))), cal, None, patience=len(bias.BIAS_PATH))
     assert bias.least_stage(full) == len(bias.BIAS_PATH) - 1
+    # a stage whose held-out score is not finite (a diverged fold fit) counts as a rise
+    assert bias.risen([2.0, 1.0, np.nan], 0.5) == 1 and bias.risen([2.0, 1.0, 1.4], 0.5) == 0
 
 
 def test_a_bias_chosen_from_unconverged_fold_fits_is_a_health_warning():
