@@ -67,9 +67,9 @@ def _lm(res, jac, a, qj, th, iters=60):
     return th, norm
 
 
-def reference(rb, a, q, starts=6, seed=0):
-    """(branch tool (N, 3), branch closed (N,), closable (N,)) from the slow numpy reference."""
-    res, jac, tool = _fns(rb)
+def reference(rb, a, q, fns, starts=6, seed=0):
+    """(branch tool (N, 3), branch closed (N,), closable (N,)) from the slow numpy reference (fns: `_fns`)."""
+    res, jac, tool = fns
     a, a_ref = np.asarray(a, float), np.asarray(rb.nominal_np, float)
     qj = np.asarray(q, float)  # Table 4.6 Delta: joint variables = actuator readings
     home = np.broadcast_to(np.asarray(rb.home_np, float), qj.shape)
@@ -110,8 +110,10 @@ def compare(rb, scale, n, seed):
     q = _settings(n, seed)
     ours = dl.solve(rb, a, q)
     status = np.asarray(ours.status)
-    tool = np.asarray(jc.forward(rb, a, q).p)
-    branch_tool, branch_ok, closable = reference(rb, a, q, seed=seed)
+    fns = _fns(rb)
+    # our tool: the whole tree's at our free joints (jc.forward's tool is checked against them in test_delta)
+    tool = np.asarray(fns[2](jnp.asarray(a), jnp.asarray(q), ours.theta_free))
+    branch_tool, branch_ok, closable = reference(rb, a, q, fns, seed=seed)
     off_branch = (status == CLOSED) & (~branch_ok | (np.linalg.norm(tool - branch_tool, axis=1) > 1e-6))
     flagged = closable & (status == UNCLOSED)
     return {"settings": len(q), "closable": int(closable.sum()), "flagged_closable": int(np.sum(flagged & branch_ok)),

@@ -11,7 +11,7 @@ from conftest import central_fd, rel_err
 
 import jaxcal as jc
 from jaxcal.closure import delta as dl
-from jaxcal.closure.core import FAIL_OFFSET
+from jaxcal.closure.core import FAIL_OFFSET, tree_frames
 from jaxcal.fit import core
 
 N = 16  # one batch shape for every closure call: one compile per function
@@ -75,11 +75,13 @@ def test_closed_mcpc_delta_agrees_with_direct_solution(rb):
 
 def test_closure_holds_on_the_whole_tree_for_perturbed_geometry(rb):
     """The reduced 5 x 5 system closes all 15 closure equations of the tree (checked body by body),
-    and the reported residual norm equals the whole-tree one."""
+    the reported residual norm equals the whole-tree one, and jc.forward's tool is the whole tree's at those joints."""
     a = jc.perturb(rb, 2e-3, seed=3)
     _, theta = _workspace(N, seed=2)
     sol = dl.solve(rb, a, theta)
     assert sol.theta_free.shape == (N, 15) and bool(jnp.all(sol.ok))
+    tree_tool = jax.jit(jax.vmap(lambda qi, th: tree_frames(rb, a, qi, th).p[rb.tip]))(theta, sol.theta_free)
+    np.testing.assert_allclose(jc.forward(rb, a, theta).p, tree_tool, rtol=0, atol=1e-12)
     st = dl._statics(rb, a)
     for q, th in zip(theta[:3], sol.theta_free[:3]):
         fixed = dl._fixed(rb, st, q)
