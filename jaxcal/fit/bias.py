@@ -41,8 +41,9 @@ BIAS_FOLDS = 4
 # at 0.01-0.1 mm noise and by theodolite, Kiwibot, TALOS arms from 20 positions; the whole path run on each:
 # benchmarks/bias_patience.py): on the first 36, one rise of any size (PATIENCE 1, RISE 0) chose another stage than
 # two rises once (a rise of 1e-4 of the score, then a lower score: new tool positions 0.066 against 0.063 mm); one rise
-# by more than 1e-3 to 1e-2 of the score chose as two rises on all 73 (RISE 5e-3: 256 stages run against 314). The benchmark's Delta
-# (125 positions) no longer runs the stage at 1e-6, 72 of its call's 184 LM steps: call 481-548 -> 349-371 ms.
+# by more than 1e-3 to 1e-2 of the score chose as two rises on all 73 (RISE 5e-3: 256 stages run against 314). The
+# benchmark's Delta (125 positions) no longer runs the stage at 1e-6, 72 of its call's 184 LM steps: call 481-548 ->
+# 349-371 ms.
 PATIENCE = 1
 RISE = 5e-3
 # identify's default for a noise-dominated open chain with few readings: every free parameter (no base-set cut)
