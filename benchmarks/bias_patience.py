@@ -1,10 +1,11 @@
 """Where should the k-fold bias path stop? (`jaxcal.fit.bias.PATIENCE`, `RISE`; issue 18: the Delta's call.)
 
 For each simulated case whose default `identify` chooses its bias by k-fold held-out error, the whole path is run
-(every stage, whatever the scores), and the stopping rules are replayed on its pooled held-out scores: stop at the
-first `patience` stages whose score exceeds the least so far by more than the share `rise`. A rule is as good as
-running the whole path where it picks the same stage; where two picks differ, both schedules are fitted and their
-model's RMS tool-position (or reading) error on 200 new noise-free settings is printed.
+(every stage, whatever the scores), and the stopping rules are replayed on its pooled held-out scores
+(`fit.bias.path_ends`: stop once `patience` stages past the least exceed it by more than the share `rise`, or more
+than `patience` stages lie past it). A rule is as good as running the whole path where it picks the same stage;
+where two picks differ, both schedules are fitted and their model's RMS tool-position (or reading) error on 200 new
+noise-free settings is printed.
 
 Cases: the Delta (seed 004 Table 4.6) from 60 and 125 positions at 0.01, 0.03 and 0.1 mm noise, and by theodolite
 (0.013 mrad, instrument and marker known), the Kiwibot from 60 positions (0.02, 0.1 mm), the TALOS arm, UR10 and
@@ -33,9 +34,9 @@ RULES = [(1, 0.0), (1, 1e-3), (1, 2e-3), (1, 5e-3), (1, 1e-2), (2, 0.0)]
 
 
 def stop_stage(scores, patience: int, rise: float) -> tuple[int, int]:
-    """(chosen stage, stages run) when the path stops at `patience` stages past the least by more than `rise`."""
+    """(chosen stage, stages run) under `fit.bias.path_ends`' rule with these patience and rise."""
     for k in range(len(scores)):
-        if bias.risen(scores[:k + 1], rise) >= patience:
+        if bias.path_ends(scores[:k + 1], patience, rise):
             return bias.least_stage(scores[:k + 1]), k + 1
     return bias.least_stage(scores), len(scores)
 

@@ -201,9 +201,9 @@ def test_bias_path_stops_once_the_held_out_score_has_risen_past_its_least_by_mor
     whose score exceeds the least by more than the share RISE: with pooled held-out scores 5, 3, 3 (1 + RISE / 2),
     4 (and 1, 0.5 in the two stages after) the third stage's rise is not counted, the fourth's is, so it runs four
     stages on each of the four folds, leaves the last two NaN, and `choose_bias` ends at the second stage. Counting
-    every rise (rise 0), it stops after the third stage; with the patience of the whole path every stage runs and the
-    last wins: the rule assumes a path whose held-out error falls, then rises, which is what fitting the noise along
-    weak directions gives."""
+    every rise (rise 0), it stops after the third stage; a flat score stops PATIENCE + 1 stages past the least; with the
+    patience of the whole path every stage runs and the last wins: the rule assumes a path whose held-out error
+    falls, then rises, which is what fitting the noise along weak directions gives."""
     from types import SimpleNamespace
 
     from jaxcal.fit import bias
@@ -240,6 +240,10 @@ def test_bias_path_stops_once_the_held_out_score_has_risen_past_its_least_by_mor
     assert np.isfinite(every_rise[:3]).all() and np.isnan(every_rise[3:]).all()
     full, _, _ = bias.heldout_scores(Problem(np.ones((8, 1))), cal, None, patience=len(bias.BIAS_PATH))
     assert bias.least_stage(full) == len(bias.BIAS_PATH) - 1
+    # a flat score (every rise below RISE) still stops PATIENCE + 1 stages past the least, as two rises of any size did
+    curve.update(zip(bias.BIAS_PATH[2:4], (3.0 * (1 + bias.RISE / 3), 3.0 * (1 + bias.RISE / 2))))
+    flat, _, _ = bias.heldout_scores(Problem(np.ones((8, 1))), cal, None)
+    assert np.isfinite(flat[:4]).all() and np.isnan(flat[4:]).all() and bias.least_stage(flat) == 1
     # a stage whose held-out score is not finite (a diverged fold fit) counts as a rise
     assert bias.risen([2.0, 1.0, np.nan], 0.5) == 1 and bias.risen([2.0, 1.0, 1.4], 0.5) == 0
 

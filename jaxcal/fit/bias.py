@@ -41,7 +41,8 @@ BIAS_FOLDS = 4
 # at 0.01-0.1 mm noise and by theodolite, Kiwibot, TALOS arms from 20 positions; the whole path run on each:
 # benchmarks/bias_patience.py): on the first 36, one rise of any size (PATIENCE 1, RISE 0) chose another stage than
 # two rises once (a rise of 1e-4 of the score, then a lower score: new tool positions 0.066 against 0.063 mm); one rise
-# by more than 1e-3 to 1e-2 of the score chose as two rises on all 73 (RISE 5e-3: 256 stages run against 314). The
+# by more than 1e-3 to 1e-2 of the score chose as two rises on all 73 (RISE 5e-3: 256 stages run against 314; 255
+# with PATIENCE + 1 stages past the least as a bound, the rule before, so that a flat score runs no more). The
 # benchmark's Delta (125 positions) no longer runs the stage at 1e-6, 72 of its call's 184 LM steps: call 481-548 ->
 # 349-371 ms.
 PATIENCE = 1
@@ -124,10 +125,12 @@ def heldout_scores(problem: core.Problem, cal: core.Calibration, settings: core.
     per stage), stage by stage over the folds; the path stops once `patience` stages past the least score exceed it
     by more than the share `rise` (`risen`; NaN for the stages not run: along a regularisation path the held-out
     error falls, then rises as the fit follows the noise, and the stages past the rise are the costly, weakly damped
-    ones; a rise within `rise` of the least is not counted, the score may fall again after it). unconverged: how
-    many of the `solves` fold solves stopped at the step limit (a score from such a fit is not the fold's optimum's:
-    on a Delta seen from 2.6 m through 0.2 mm noise, weakest standard error 282 x the typical size, every fold solve
-    stopped at the gap baselines' 40 steps, and solved from another start the folds chose another stage)."""
+    ones; a rise within `rise` of the least is not counted, the score may fall again after it), and in any case
+    `patience` + 1 stages past the least (a flat score runs no more stages than two rises of any size did).
+    unconverged: how many of the `solves` fold solves stopped at the step limit (a score from such a fit is not the
+    fold's optimum's: on a Delta seen from 2.6 m through 0.2 mm noise, weakest standard error 282 x the typical size,
+    every fold solve stopped at the gap baselines' 40 steps, and solved from another start the folds chose another
+    stage)."""
     used = np.flatnonzero(problem.used)
     fold = np.full(len(problem.q), -1)
     fold[used] = fold_index(len(used), folds, seed)
@@ -152,7 +155,7 @@ def heldout_scores(problem: core.Problem, cal: core.Calibration, settings: core.
             xs, reads, held_out, converged = zip(*pool.map(stage, range(folds), [mu] * folds))
             scores[k] = sum(held_out)  # in fold order: the same sum as one fold after another
             unconverged, solves = unconverged + converged.count(False), solves + folds
-            if risen(scores[:k + 1], rise) >= patience:
+            if path_ends(scores[:k + 1], patience, rise):
                 break
     return scores, unconverged, solves
 
@@ -182,6 +185,12 @@ def risen(scores, rise: float) -> int:
     return int(np.sum(~(scores[k + 1:] <= scores[k] * (1.0 + rise))))
 
 
+def path_ends(scores, patience: int = PATIENCE, rise: float = RISE) -> bool:
+    """Whether the path stops after the stages scored so far (`heldout_scores`): `patience` of them past the least
+    exceed it by more than the share `rise` (`risen`), or more than `patience` lie past the least."""
+    return risen(scores, rise) >= patience or len(scores) - 1 - least_stage(scores) > patience
+
+
 def choose_bias(problem: core.Problem, cal: core.Calibration, settings: core.Settings, path=BIAS_PATH,
                 folds: int = BIAS_FOLDS, seed: int = 0) -> tuple[list[float], np.ndarray, dict]:
     """(schedule, scores, record): the prefix of `path` ending at the stage of least held-out error, the scores, and
@@ -193,5 +202,5 @@ def choose_bias(problem: core.Problem, cal: core.Calibration, settings: core.Set
 
 __all__ = ["BIAS_FOLDS", "BIAS_PATH", "EARLY_MARGIN", "EARLY_STEPS", "FEW_READINGS", "ILL_CONDITIONED_BIAS",
            "NOISE_DOMINATED", "PATIENCE", "PRIOR_PATH", "RISE", "choose_bias", "clearly_noise_dominated", "few_readings",
-           "fold_index", "fold_workers", "heldout_scores", "least_stage", "risen",
+           "fold_index", "fold_workers", "heldout_scores", "least_stage", "path_ends", "risen",
            "weakest_standard_error"]
