@@ -49,17 +49,20 @@ def _lm(res, jac, a, qj, th, iters=60):
     """Batched Levenberg-Marquardt in numpy (per-sample damping): (theta, residual norm)."""
     th = np.array(th, float)
     mu = np.full(len(th), 1e-3)
-    norm = np.linalg.norm(np.asarray(res(a, qj, th)), axis=1)
+    F = np.asarray(res(a, qj, th))  # the residual at th, kept from the trial that moved each sample there
+    norm = np.linalg.norm(F, axis=1)
     eye = np.eye(th.shape[1])
     for _ in range(iters):
-        F, J = np.asarray(res(a, qj, th)), np.asarray(jac(a, qj, th))
+        J = np.asarray(jac(a, qj, th))
         JT = np.transpose(J, (0, 2, 1))
         with np.errstate(all="ignore"):
             d = -np.linalg.solve(JT @ J + mu[:, None, None] * eye, (JT @ F[..., None]))[..., 0]
         trial = th + np.where(np.isfinite(d), d, 0.0)
-        tn = np.linalg.norm(np.asarray(res(a, qj, trial)), axis=1)
+        F_trial = np.asarray(res(a, qj, trial))
+        tn = np.linalg.norm(F_trial, axis=1)
         better = np.isfinite(tn) & (tn < norm)
         th = np.where(better[:, None], trial, th)
+        F = np.where(better[:, None], F_trial, F)
         norm = np.where(better, tn, norm)
         mu = np.where(better, np.maximum(mu / 10, 1e-15), mu * 10)
         if np.all((norm <= 1e-2 * CLOSED_TOL) | (mu > 1e8)):  # every sample closed or stuck
