@@ -11,8 +11,9 @@ measured in the same process, compile time apart, medians.
   options: the whole `jc.identify` call vs scipy's MINPACK LM with finite differences on jaxcal's own compiled
   residual, same unknowns (the ones identify estimated), same start (identify's frames-only point).
 
-Writes benchmarks/results/bench.md (atomically) and prints its rows as they come. Run: python benchmarks/table.py
-[--max-n N] [--parts fk,pinocchio,identify,own] [--out FILE]
+Writes benchmarks/results/bench.md and, when every part ran, the table of docs/benchmarks.md (the lines between
+DOCS_START and DOCS_END), both atomically, and prints its rows as they come. Run: python benchmarks/table.py
+[--max-n N] [--parts fk,pinocchio,identify,own] [--out FILE] [--docs FILE, '' to leave the docs as they are]
 """
 
 from __future__ import annotations
@@ -34,6 +35,22 @@ from _common import first_and_median, median_time
 import jaxcal as jc
 from jaxcal.fit import core
 from jaxcal.report import write_text_atomic
+
+DOCS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "docs", "benchmarks.md")
+DOCS_START = "<!-- make bench: the table below is written by benchmarks/table.py -->"
+DOCS_END = "<!-- make bench: end of the table -->"
+
+
+def spliced(doc: str, block: str, source: str) -> str:
+    """doc with the lines between its DOCS_START and DOCS_END lines replaced by block (the marker lines and the rest
+    kept as they are). ValueError naming source when a marker is missing, repeated or out of order."""
+    lines = doc.splitlines(keepends=True)
+    starts = [i for i, line in enumerate(lines) if line.strip() == DOCS_START]
+    ends = [i for i, line in enumerate(lines) if line.strip() == DOCS_END]
+    if len(starts) != 1 or len(ends) != 1 or ends[0] < starts[0]:
+        raise ValueError(f"{source}: needs one line {DOCS_START!r} and, after it, one line {DOCS_END!r} around the table "
+                         f"(found {len(starts)} and {len(ends)})")
+    return "".join(lines[:starts[0] + 1]) + block.rstrip("\n") + "\n" + "".join(lines[ends[0]:])
 
 
 def machine_line() -> str:
@@ -124,10 +141,15 @@ def main(argv=None):
     ap.add_argument("--max-n", type=int, default=100_000, help="largest FK batch (default 1e5)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "bench.md"))
     ap.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated subset of {', '.join(PARTS)} (default all)")
+    ap.add_argument("--docs", default=DOCS, help="the Markdown file whose table a run of every part rewrites ('' for none)")
     args = ap.parse_args(argv)
     parts = args.parts.split(",")
     if unknown := sorted(set(parts) - set(PARTS)):
         ap.error(f"--parts: unknown {', '.join(unknown)}; choose from {', '.join(PARTS)}")
+    docs = args.docs if args.docs and sorted(parts) == sorted(PARTS) else None
+    if docs:  # a file without its markers fails now, not after the run
+        with open(docs, encoding="utf-8") as f:
+            spliced(f.read(), "", docs)
     t0 = time.perf_counter()
     head = [f"Machine: {machine_line()}.", "",
             "| case | compile | jaxcal (median) | baseline, same process (median) | speed-up | other |",
@@ -140,7 +162,13 @@ def main(argv=None):
         rows += new
     text = "\n".join(head + rows + ["", f"Whole run {time.perf_counter() - t0:.0f} s.", ""])
     write_text_atomic(args.out, text)
-    print(f"Whole run {time.perf_counter() - t0:.0f} s; written to {args.out}")
+    written = [args.out]
+    if docs:
+        with open(docs, encoding="utf-8") as f:
+            write_text_atomic(docs, spliced(f.read(), text, docs))
+        written.append(docs)
+    print(f"Whole run {time.perf_counter() - t0:.0f} s; written to {' and '.join(written)}"
+          + ("" if docs or not args.docs else f" ({args.docs} left as it is: --parts ran a subset)"))
 
 
 if __name__ == "__main__":
